@@ -1,0 +1,1 @@
+"""The `jaxcal` subcommands, one module each: `add_arguments(parser)` and `run(args) -> int`."""

@@ -1,0 +1,106 @@
+"""`jaxcal info FILE [--json]`: a readable summary of a jaxcal file."""
+
+from __future__ import annotations
+
+
+def add_arguments(p) -> None:
+    p.add_argument("file", help="a jaxcal HDF5 file")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+
+
+def summarise(obj) -> dict:
+    """Summary of a dataset or result as a plain dict."""
+    import numpy as np
+
+    from jaxcal.commands._common import kind_of
+
+    kind = kind_of(obj)
+    out: dict = {"format": kind}
+    if kind == "mesh":
+        rng = obj.range
+        measured = np.isfinite(rng)
+        k, n = obj.n_epochs, obj.n_nodes
+        pairs = max(n * (n - 1), 1)
+        out.update(
+            name=obj.name,
+            nodes=list(obj.node_ids),
+            epochs=k,
+            time_span_s=[float(obj.time[0]), float(obj.time[-1])] if k else None,
+            ranges=int(measured.sum()),
+            truth=obj.truth is not None and bool(np.isfinite(obj.truth).all(axis=1).any()),
+            los_known=obj.los is not None,
+            configs={c: list(v) for c, v in obj.configs},
+            # availability: fraction of (epoch, other node) slots with a range from or to this node
+            availability={
+                nid: float((measured[:, i, :] | measured[:, :, i]).sum() / max(k * (n - 1), 1))
+                for i, nid in enumerate(obj.node_ids)
+            },
+            pair_coverage=float((measured.any(axis=0).sum()) / pairs),
+        )
+    elif kind == "trajectory":
+        r = obj.n_ranges
+        out.update(
+            name=obj.name,
+            anchors=list(obj.anchor_ids),
+            tags=list(obj.tag_ids),
+            poses=int(obj.pose_time.shape[0]),
+            pose_span_s=[float(obj.pose_time[0]), float(obj.pose_time[-1])],
+            ranges=r,
+            range_span_s=[float(obj.range_time[0]), float(obj.range_time[-1])] if r else None,
+            truth=obj.anchor_truth is not None and bool(np.isfinite(obj.anchor_truth).all(axis=1).any()),
+            ranges_per_anchor={a: int((obj.range_anchor == i).sum()) for i, a in enumerate(obj.anchor_ids)},
+            orientation=obj.pose_orientation is not None,
+        )
+    else:
+        est = np.isfinite(obj.position).all(axis=1)
+        out.update(
+            name=obj.name,
+            method=obj.method,
+            dataset=obj.dataset,
+            frame=obj.frame,
+            software=obj.software,
+            ids=list(obj.ids),
+            dims=int(obj.position.shape[1]),
+            estimated=int(est.sum()),
+            covariance=obj.covariance is not None,
+            track_epochs=None if obj.track_time is None else int(obj.track_time.shape[0]),
+            params=dict(obj.params),
+        )
+    return out
+
+
+def run(args) -> int:
+    from jaxcal.commands._common import load, print_json
+
+    obj = load(args.file)
+    s = summarise(obj)
+    if args.json:
+        print_json(s)
+        return 0
+    kind = s["format"]
+    print(f"{args.file}: jaxcal {kind} file '{s['name']}'")
+    if kind == "mesh":
+        t = s["time_span_s"]
+        span = f"{t[0]:.3f} .. {t[1]:.3f} s ({t[1] - t[0]:.1f} s)" if t else "empty"
+        print(f"  nodes: {len(s['nodes'])}   epochs: {s['epochs']}   ranges: {s['ranges']}   time: {span}")
+        print(f"  truth: {'yes' if s['truth'] else 'no'}   LOS matrix: {'yes' if s['los_known'] else 'no'}"
+              f"   pairs ever measured: {100 * s['pair_coverage']:.1f} %")
+        if s["configs"]:
+            print("  configurations: " + ", ".join(f"{c}={tuple(v)}" for c, v in s["configs"].items()))
+        print("  availability per node (share of epoch x peer slots with a range):")
+        for nid, a in s["availability"].items():
+            print(f"    {nid:>12s}  {100 * a:6.1f} %")
+    elif kind == "trajectory":
+        t = s["pose_span_s"]
+        print(f"  anchors: {len(s['anchors'])}   tags: {len(s['tags'])}   poses: {s['poses']}"
+              f"   ranges: {s['ranges']}")
+        print(f"  poses: {t[0]:.3f} .. {t[1]:.3f} s   orientation: {'yes' if s['orientation'] else 'no'}"
+              f"   anchor truth: {'yes' if s['truth'] else 'no'}")
+        print("  ranges per anchor: " + ", ".join(f"{a}={c}" for a, c in s["ranges_per_anchor"].items()))
+    else:
+        print(f"  method: {s['method']}   dataset: {s['dataset']}   frame: {s['frame']}   software: {s['software']}")
+        print(f"  estimates: {s['estimated']}/{len(s['ids'])} ({s['dims']}-D)   covariance: "
+              f"{'yes' if s['covariance'] else 'no'}   track epochs: {s['track_epochs'] or 'none'}")
+        if s["params"]:
+            print("  params: " + ", ".join(f"{k}={v}" for k, v in s["params"].items()))
+    return 0

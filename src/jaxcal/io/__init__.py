@@ -1,0 +1,1 @@
+"""Input and output at the edges: HDF5 contract files, importers of real recordings, serial devices."""

@@ -1,0 +1,42 @@
+"""Registry of calibration methods, so that `jaxcal calibrate --method NAME` and the API dispatch alike.
+
+Each entry maps a method name to `"module:function"`, imported only when used. A method function has
+the signature `fn(dataset, params: Mapping[str, Any] | None = None, config: str | None = None) -> Result`:
+`params` are overrides of the method's documented defaults (strings from `--set` are cast), `config`
+names a mesh frame configuration (ignored by trajectory methods).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Mapping
+from typing import Any
+
+from jaxcal.errors import JaxcalError
+
+MESH_METHODS: dict[str, str] = {
+    "cf": "jaxcal.mesh.closed_form:calibrate",
+}
+
+TRAJECTORY_METHODS: dict[str, str] = {}
+
+__all__ = ["MESH_METHODS", "TRAJECTORY_METHODS", "get_method", "calibrate"]
+
+
+def get_method(kind: str, name: str):
+    """The calibration function registered as `name` for datasets of `kind` ('mesh' or 'trajectory')."""
+    table = MESH_METHODS if kind == "mesh" else TRAJECTORY_METHODS
+    if name not in table:
+        known = ", ".join(sorted(table)) or "none yet"
+        raise JaxcalError(f"unknown method {name!r} for {kind} data (known: {known})")
+    module, _, func = table[name].partition(":")
+    return getattr(importlib.import_module(module), func)
+
+
+def calibrate(dataset, method: str, params: Mapping[str, Any] | None = None, config: str | None = None):
+    """Calibrate `dataset` (MeshDataset or TrajectoryDataset) with a registered method; returns a Result."""
+    from jaxcal.data import MeshDataset
+
+    kind = "mesh" if isinstance(dataset, MeshDataset) else "trajectory"
+    fn = get_method(kind, method)
+    return fn(dataset, params=params, config=config)

@@ -1,0 +1,1 @@
+"""Simulators: UWB channel models and mesh / trajectory scenarios."""

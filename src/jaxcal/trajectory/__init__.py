@@ -1,0 +1,1 @@
+"""Trajectory anchor calibration: a platform with known poses ranging to fixed anchors."""

@@ -1,0 +1,56 @@
+"""Shared fixtures. x64 is on so that reference comparisons are exact; fast paths that run in float32
+state their dtype explicitly and their tests give loose tolerances with a comment."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+jax.config.update("jax_enable_x64", True)
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared"
+DATASETS = SHARED / "datasets"
+PROTOCOLS = SHARED / "protocols"
+
+
+def shared_path(*parts: str) -> Path:
+    """A path under ../shared; skips the test cleanly when it is absent (a user's clone has no shared/)."""
+    p = SHARED.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"shared data not available: {p}")
+    return p
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(12345)
+
+
+def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600, env: dict | None = None):
+    """Run `python -m jaxcal.cli ARGS` in a subprocess; returns CompletedProcess (text)."""
+    e = dict(os.environ)
+    e.setdefault("JAX_PLATFORMS", "cpu")
+    e.pop("JAXCAL_DEBUG", None)
+    if env:
+        e.update(env)
+    return subprocess.run(
+        [sys.executable, "-m", "jaxcal.cli", *map(str, args)],
+        capture_output=True, text=True, cwd=cwd, timeout=timeout, env=e,
+    )
+
+
+def assert_one_line_error(proc, fragment: str | None = None, code: int = 2):
+    """Bad input: the given exit status, exactly one line on stderr, no traceback."""
+    assert proc.returncode == code, (proc.returncode, proc.stdout, proc.stderr)
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, proc.stderr
+    assert "Traceback" not in proc.stderr
+    if fragment is not None:
+        assert fragment.lower() in lines[0].lower(), lines[0]
