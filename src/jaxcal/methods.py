@@ -18,7 +18,11 @@ MESH_METHODS: dict[str, str] = {
     "cf": "jaxcal.mesh.closed_form:calibrate",
 }
 
-TRAJECTORY_METHODS: dict[str, str] = {}
+TRAJECTORY_METHODS: dict[str, str] = {
+    "gp": "jaxcal.trajectory.gp:calibrate",
+    "nls": "jaxcal.trajectory.nls:calibrate",
+    "ls": "jaxcal.trajectory.ls:calibrate",
+}
 
 __all__ = ["MESH_METHODS", "TRAJECTORY_METHODS", "get_method", "calibrate"]
 
