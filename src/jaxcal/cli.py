@@ -17,9 +17,13 @@ import sys
 
 # name -> (module under jaxcal.commands, one-line help). Order is the order of `jaxcal --help`.
 COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("demo", "run the paper's evaluation on the embedded simulated dataset"),
     "info": ("info", "summarise a jaxcal file"),
     "validate": ("validate", "check a file against the HDF5 contract"),
     "calibrate": ("calibrate", "estimate node or anchor positions (--method cf, pgp, gp, ...)"),
+    "simulate": ("simulate", "simulate a mesh or trajectory dataset (--scenario torgau, campus, ...)"),
+    "stats": ("stats", "ranging error statistics by LOS / NLOS (Table I)"),
+    "evaluate": ("evaluate", "compare a result with the ground truth of a dataset"),
 }
 
 

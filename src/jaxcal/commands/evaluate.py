@@ -1,0 +1,35 @@
+"""`jaxcal evaluate RESULT.h5 --truth DATASET.h5 [--json]`: errors of a calibration against ground truth."""
+
+from __future__ import annotations
+
+
+def add_arguments(p) -> None:
+    p.add_argument("result", help="a result file (from `jaxcal calibrate`)")
+    p.add_argument("--truth", required=True, help="the dataset with ground truth (mesh or trajectory)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+
+
+def run(args) -> int:
+    from jaxcal.commands._common import kind_of, load, print_json
+    from jaxcal.metrics import evaluate
+
+    result = load(args.result, ("result",))
+    truth = load(args.truth, ("mesh", "trajectory"))
+    report = evaluate(result, truth)
+    if args.json:
+        report.pop("ecdf", None)
+        print_json(report)
+        return 0
+    fmt = lambda v: "    -" if v is None or v != v else f"{v:7.3f}"  # noqa: E731
+    print(f"{report['method']} on {report['dataset']}")
+    if kind_of(truth) == "mesh":
+        print(f"rmse {fmt(report['rmse_m'])} m   final rmse {fmt(report['final_rmse_m'])} m   "
+              f"aligned rmse {fmt(report['aligned_rmse_m'])} m")
+        print(f"{'node':<12}{'rmse [m]':>10}{'final [m]':>11}{'avail.':>8}")
+        for n in report["nodes"]:
+            print(f"{n['id']:<12}{fmt(n['rmse_m']):>10}{fmt(n['final_error_m']):>11}{100 * n['availability']:>7.1f}%")
+    else:
+        print(f"mean error {fmt(report['mean_error_m'])} m")
+        for a in report["anchors"]:
+            print(f"{a['id']:<12}{fmt(a['error_m']):>10}")
+    return 0
