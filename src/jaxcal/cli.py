@@ -17,6 +17,7 @@ import sys
 
 # name -> (module under jaxcal.commands, one-line help). Order is the order of `jaxcal --help`.
 COMMANDS: dict[str, tuple[str, str]] = {
+    "import": ("importer", "convert a recording (dwm1001-autocal, hymn, cuhksz, hanyang, csv) to a jaxcal file"),
     "demo": ("demo", "run the paper's evaluation on the embedded simulated dataset"),
     "info": ("info", "summarise a jaxcal file"),
     "validate": ("validate", "check a file against the HDF5 contract"),
