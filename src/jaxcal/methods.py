@@ -16,6 +16,7 @@ from jaxcal.errors import JaxcalError
 
 MESH_METHODS: dict[str, str] = {
     "cf": "jaxcal.mesh.closed_form:calibrate",
+    "batch": "jaxcal.mesh.batch:calibrate",
 }
 
 TRAJECTORY_METHODS: dict[str, str] = {

@@ -1,0 +1,524 @@
+"""Robust batch calibration of a static mesh: all epochs at once, robust loss, range bias, covariance.
+
+Model: the measured range of pair (i, j) is `z_ij = ||p_i - p_j|| + c + b_i + b_j + e_ij`, with a common
+range offset `c` (`bias="network"`; DWM1001 ranges are typically 0.1-0.3 m short, so `c < 0`), optional
+per-node offsets `b_i` (`bias="node"`, antenna delays, with a Gaussian prior of width
+`node_bias_sigma_m`) and an error `e` scored by a robust loss rho (Huber, Cauchy, or the negative log of
+a LOS / NLOS / outlier mixture). The fit minimises `sum rho(e)` with Optimistix least squares
+(Levenberg-Marquardt or Gauss-Newton) on "square-root" residuals `sign(e) sqrt(2 rho(e))`, whose
+Gauss-Newton gradient equals the gradient of the robust cost.
+
+Observations are either one robust summary per pair (`summary="median"`: the median over epochs of
+each direction, then the mean of the two directions) or every single range (`summary="all"`).
+
+A local fit needs a global start: classical MDS of the distance matrix completed by shortest paths,
+SMACOF from it, and SMACOF from several random starts are all refined (vmapped) and the one with the
+lowest robust cost wins. A global mirror image has the same cost (it is the gauge, fixed at the end by
+`to_frame`); partial flips of weakly connected nodes are what the random starts are for.
+
+Output frame: a0 at the origin, a1 on +x, a2 with y > 0 (CONTRACT 1.1). The covariance
+`sigma^2 (J^T W J)^-1` is computed in gauge-fixed coordinates of that frame (W = IRLS weights
+psi(e)/e, sigma^2 the weighted residual variance), so it is exactly zero for the coordinates the
+frame fixes.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Float, Int
+
+from jaxcal.data import MeshDataset, Result
+from jaxcal.errors import JaxcalError
+from jaxcal.mesh import mds
+from jaxcal.mesh.frame import to_frame
+from jaxcal.params import as_dict, with_overrides
+
+__all__ = ["BatchParams", "Observations", "BatchSolution", "observations", "solve", "calibrate", "LOSSES"]
+
+LOSSES = ("l2", "huber", "cauchy", "mixture")
+BIASES = ("none", "network", "node")
+SUMMARIES = ("median", "all")
+INITS = ("multi", "cmds", "smacof")
+SOLVERS = ("lm", "gn")
+
+
+class BatchParams(eqx.Module):
+    """Parameters of `--method batch` (all settable with `--set KEY=VALUE`).
+
+    Attributes:
+        dim: 2 (planar) or 3 (positions in 3-D; a2 fixes the x-y plane).
+        loss: robust loss: `l2`, `huber`, `cauchy` (default; redescending, ignores gross outliers),
+            `mixture` (LOS Gaussian + exponentially modified Gaussian NLOS + uniform outliers).
+        sigma_r: ranging standard deviation / loss scale [m] (LOS width of the mixture).
+        bias: range offset model: `none`, `network` (one common offset, default), `node` (common offset
+            plus one offset per node).
+        node_bias_sigma_m: prior standard deviation of the per-node offsets [m] (`bias=node`).
+        summary: `median` (one robust range per pair, default) or `all` (every range of every epoch).
+        nlos_weight, nlos_mean_m: mixture share and mean excess length of NLOS ranges.
+        outlier_weight, outlier_span_m: mixture share and span [m] of the uniform outlier floor.
+        init: `multi` (classical MDS, SMACOF and random SMACOF starts; default), `cmds`, `smacof`.
+        n_starts: number of random SMACOF starts (with `init=multi`).
+        smacof_iters: Guttman transforms per SMACOF run.
+        solver: `lm` (Levenberg-Marquardt, default) or `gn` (Gauss-Newton).
+        max_steps: iteration limit of the least-squares solver.
+        tol: relative and absolute tolerance of the least-squares solver.
+        seed: random seed of the random starts.
+        z_up: 3-D only: of the two mirror images (z -> -z), report the one where the nodes other than
+            a0, a1, a2 lie mostly above the a0-a1-a2 plane (true) or below it (false).
+    """
+
+    dim: int = 2
+    loss: str = "cauchy"
+    sigma_r: float = 0.2
+    bias: str = "network"
+    node_bias_sigma_m: float = 0.1
+    summary: str = "median"
+    nlos_weight: float = 0.2
+    nlos_mean_m: float = 1.0
+    outlier_weight: float = 0.05
+    outlier_span_m: float = 50.0
+    init: str = "multi"
+    n_starts: int = 8
+    smacof_iters: int = 300
+    solver: str = "lm"
+    max_steps: int = 200
+    tol: float = 1e-9
+    seed: int = 0
+    z_up: bool = True
+
+    def __check_init__(self):
+        for name, allowed in (("loss", LOSSES), ("bias", BIASES), ("summary", SUMMARIES),
+                              ("init", INITS), ("solver", SOLVERS)):
+            if getattr(self, name) not in allowed:
+                raise JaxcalError(f"parameter {name}: expected one of {', '.join(allowed)}, got {getattr(self, name)!r}")
+        if self.dim not in (2, 3):
+            raise JaxcalError(f"parameter dim: expected 2 or 3, got {self.dim}")
+        for name in ("sigma_r", "node_bias_sigma_m", "nlos_mean_m", "outlier_span_m", "tol"):
+            if not getattr(self, name) > 0:
+                raise JaxcalError(f"parameter {name}: must be > 0, got {getattr(self, name)}")
+        for name in ("nlos_weight", "outlier_weight"):
+            if not 0 <= getattr(self, name) < 1:
+                raise JaxcalError(f"parameter {name}: must be in [0, 1), got {getattr(self, name)}")
+        if self.nlos_weight + self.outlier_weight >= 1:
+            raise JaxcalError("parameters nlos_weight + outlier_weight must be < 1")
+        if self.n_starts < 0 or self.smacof_iters < 0 or self.max_steps < 1:
+            raise JaxcalError("parameters n_starts, smacof_iters must be >= 0 and max_steps >= 1")
+
+
+class Observations(eqx.Module):
+    """Ranges as a flat list of observations between the active nodes.
+
+    Attributes:
+        i, j: (M,) node indices (into the active nodes).
+        z: (M,) measured range [m].
+        w: (M,) observation weight (1 per range or per pair summary).
+    """
+
+    i: Int[Array, " m"]
+    j: Int[Array, " m"]
+    z: Float[Array, " m"]
+    w: Float[Array, " m"]
+
+
+class BatchSolution(eqx.Module):
+    """What `solve` returns (positions in the anchor frame; all arrays over all N nodes).
+
+    Attributes:
+        position: (N, D) [m], NaN for nodes without ranges to the frame's component.
+        covariance: (N, D, D) [m^2], NaN where undefined.
+        offset_m: fitted common range offset c [m] (0 with `bias=none`).
+        node_offset_m: (N,) fitted per-node offsets [m] (0 unless `bias=node`; NaN for inactive nodes).
+        cost: robust cost of the chosen start on the median summary.
+        start_costs: (S,) robust cost reached from every start.
+        residual_sigma_m: weighted residual standard deviation [m].
+    """
+
+    position: np.ndarray
+    covariance: np.ndarray
+    offset_m: float
+    node_offset_m: np.ndarray
+    cost: float
+    start_costs: np.ndarray
+    residual_sigma_m: float
+
+
+# ---------------------------------------------------------------------------------------------
+# Observations (host-side preprocessing, NumPy)
+
+
+def observations(range_m: np.ndarray, summary: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Flatten a (K, N, N) range stream into observations.
+
+    Args:
+        range_m: (K, N, N) ranges [m], NaN = missing.
+        summary: `median`: per pair, the nanmedian over epochs of each direction, then the mean of the
+            two directions (one observation per unordered pair). `all`: every finite range.
+
+    Returns:
+        (i, j, z, w): (M,) int arrays i < j for `median` (any order for `all`), ranges [m], weights.
+    """
+    r = np.asarray(range_m, dtype=np.float64)
+    n = r.shape[1]
+    if summary == "median":
+        med = np.full((n, n), np.nan)
+        ii, jj = np.nonzero(np.isfinite(r).any(axis=0))
+        med[ii, jj] = np.nanmedian(r[:, ii, jj], axis=0)  # only columns with a finite value
+        iu, ju = np.triu_indices(n, k=1)
+        both = np.stack([med[iu, ju], med[ju, iu]])
+        cnt = np.isfinite(both).sum(axis=0)
+        pair = np.where(cnt > 0, np.nansum(both, axis=0) / np.maximum(cnt, 1), np.nan)
+        ok = np.isfinite(pair)
+        return iu[ok], ju[ok], pair[ok], np.ones(int(ok.sum()))
+    k, ii, jj = np.nonzero(np.isfinite(r))
+    ok = ii != jj
+    return ii[ok], jj[ok], r[k[ok], ii[ok], jj[ok]], np.ones(int(ok.sum()))
+
+
+# ---------------------------------------------------------------------------------------------
+# Losses: rho(e) >= 0 in units of "nats"; sqrt_rho gives a residual f with f^2 / 2 = rho.
+
+
+class _Numbers(eqx.Module):
+    """The numeric parameters as arrays, so that new values do not recompile."""
+
+    sigma_r: Array
+    node_bias_sigma_m: Array
+    nlos_weight: Array
+    nlos_mean_m: Array
+    outlier_weight: Array
+    outlier_span_m: Array
+
+    @classmethod
+    def of(cls, p: BatchParams) -> _Numbers:
+        return cls(*(jnp.asarray(float(getattr(p, f)), dtype=float) for f in
+                     ("sigma_r", "node_bias_sigma_m", "nlos_weight", "nlos_mean_m", "outlier_weight",
+                      "outlier_span_m")))
+
+
+def _mixture_logpdf(e, nb: _Numbers):
+    """log p(e) of the range error e = z - model [m]: LOS Gaussian, NLOS exponentially modified
+    Gaussian (Gaussian convolved with a positive exponential of mean nlos_mean_m), uniform outliers."""
+    s, lam = nb.sigma_r, 1.0 / nb.nlos_mean_m
+    w_out, w_nlos = nb.outlier_weight, nb.nlos_weight
+    w_los = 1.0 - w_nlos - w_out
+    log_los = jnp.log(w_los) - 0.5 * (e / s) ** 2 - jnp.log(s * jnp.sqrt(2 * jnp.pi))
+    log_nlos = (jnp.log(jnp.maximum(w_nlos, 1e-300)) + jnp.log(lam) + 0.5 * (lam * s) ** 2 - lam * e
+                + jax.scipy.special.log_ndtr(e / s - lam * s))
+    log_out = jnp.log(jnp.maximum(w_out, 1e-300)) - jnp.log(nb.outlier_span_m)
+    return jax.scipy.special.logsumexp(jnp.stack([log_los, log_nlos, log_out]), axis=0)
+
+
+def _mixture_logpdf_bound(nb: _Numbers):
+    """An upper bound of the mixture density's log (each component's density is bounded)."""
+    s, lam = nb.sigma_r, 1.0 / nb.nlos_mean_m
+    g = 1.0 / (s * jnp.sqrt(2 * jnp.pi))
+    bound = ((1.0 - nb.nlos_weight - nb.outlier_weight) * g + nb.nlos_weight * jnp.minimum(lam, g)
+             + nb.outlier_weight / nb.outlier_span_m)
+    return jnp.log(bound) + 1e-3  # strictly above: sqrt(rho) stays smooth
+
+
+def _rho(loss: str, e, nb: _Numbers):
+    """Robust cost of range errors e [m] (elementwise)."""
+    if loss == "mixture":
+        return _mixture_logpdf_bound(nb) - _mixture_logpdf(e, nb)
+    u = e / nb.sigma_r
+    if loss == "l2":
+        return 0.5 * u * u
+    if loss == "huber":
+        a = jnp.abs(u)
+        return jnp.where(a <= 1.0, 0.5 * u * u, a - 0.5)
+    return 0.5 * jnp.log1p(u * u)  # cauchy
+
+
+def _sqrt_rho(loss: str, e, nb: _Numbers):
+    """Residual f with f^2 / 2 = rho(e), smooth (and with finite derivatives) at e = 0."""
+    if loss == "mixture":
+        return jnp.sqrt(2.0 * _rho(loss, e, nb))
+    u = e / nb.sigma_r
+    if loss == "l2":
+        return u
+    if loss == "huber":
+        a = jnp.abs(u)
+        return jnp.where(a <= 1.0, u, jnp.sign(u) * jnp.sqrt(jnp.maximum(2.0 * a - 1.0, 1.0)))
+    t = u * u  # cauchy: u * sqrt(log1p(t) / t), with the ratio's series near 0
+    small = t < 1e-8
+    ts = jnp.where(small, 1.0, t)
+    ratio = jnp.where(small, 1.0 - 0.5 * t, jnp.log1p(ts) / ts)
+    return u * jnp.sqrt(ratio)
+
+
+def _irls_weight(loss: str, e, nb: _Numbers):
+    """IRLS weight psi(e) / e * sigma_r^2 (1 for l2), >= 0; psi = d rho / d e."""
+    rho1 = lambda x: _rho(loss, x, nb)  # noqa: E731
+    d1 = jax.vmap(jax.grad(rho1))(e)
+    d2 = jax.vmap(jax.grad(jax.grad(rho1)))(e)
+    small = jnp.abs(e) < 1e-9
+    w = jnp.where(small, d2, d1 / jnp.where(small, 1.0, e))
+    return jnp.maximum(w, 0.0) * nb.sigma_r**2
+
+
+# ---------------------------------------------------------------------------------------------
+# Model and fit (traced)
+
+
+class _State(eqx.Module):
+    x: Float[Array, "n d"]
+    c: Float[Array, ""]
+    b: Float[Array, " n"]
+
+
+def _errors(state: _State, obs: Observations, bias: str):
+    """Range errors e = z - model [m] of every observation."""
+    diff = state.x[obs.i] - state.x[obs.j]
+    sq = jnp.sum(diff * diff, axis=-1)
+    dist = jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
+    model = dist
+    if bias != "none":
+        model = model + state.c
+    if bias == "node":
+        model = model + state.b[obs.i] + state.b[obs.j]
+    return obs.z - model
+
+
+def _residuals(state: _State, args):
+    obs, nb, loss, bias = args
+    f = _sqrt_rho(loss, _errors(state, obs, bias), nb) * jnp.sqrt(obs.w)
+    # Priors keep the unused offsets at zero and the per-node offsets small (full column rank).
+    prior_c = state.c / (10.0 if bias != "none" else 1e-3)
+    prior_b = state.b / (nb.node_bias_sigma_m if bias == "node" else 1e-3)
+    return f, prior_c, prior_b
+
+
+def _cost(state: _State, args) -> Array:
+    f, pc, pb = _residuals(state, args)
+    return 0.5 * (jnp.sum(f * f) + pc * pc + jnp.sum(pb * pb))
+
+
+def _solver(name: str, tol: float):
+    if name == "gn":
+        return optx.GaussNewton(rtol=tol, atol=tol)
+    return optx.LevenbergMarquardt(rtol=tol, atol=tol)
+
+
+@eqx.filter_jit
+def _initial_starts(d_pair: Array, w_pair: Array, key: Array, dim: int, init: str, n_starts: int,
+                    smacof_iters: int) -> Array:
+    """(S, n, dim) start configurations from classical MDS, SMACOF and random SMACOF starts."""
+    n = d_pair.shape[0]
+    full = mds.complete_distances(jnp.where(w_pair > 0, d_pair, jnp.nan))
+    x_cmds = mds.classical_mds(full, dim)
+    # A tiny deterministic jitter breaks the exact degeneracy of a planar MDS in 3-D.
+    jitter = 1e-3 * jax.random.normal(jax.random.fold_in(key, 1), x_cmds.shape)
+    x_cmds = x_cmds + jitter
+    if init == "cmds":
+        return x_cmds[None]
+    x_sm = mds.smacof(d_pair, w_pair, x_cmds, smacof_iters)
+    if init == "smacof":
+        return x_sm[None]
+    span = jnp.max(jnp.where(jnp.isfinite(full), full, 0.0))
+    rand = jax.random.uniform(key, (n_starts, n, dim), minval=-0.5, maxval=0.5) * span
+    rand_sm = jax.vmap(lambda x0: mds.smacof(d_pair, w_pair, x0, smacof_iters))(rand)
+    return jnp.concatenate([x_cmds[None], x_sm[None], rand_sm], axis=0)
+
+
+@eqx.filter_jit
+def _fit_starts(y0s: _State, obs: Observations, nb: _Numbers, loss: str, bias: str, solver: str,
+                tol: float, max_steps: int):
+    """Refine every start (a batched `_State`; vmapped least squares); returns final states and costs."""
+    args = (obs, nb, loss, bias)
+
+    def one(y0):
+        sol = optx.least_squares(_residuals, _solver(solver, tol), y0, args, max_steps=max_steps,
+                                 throw=False)
+        return sol.value, _cost(sol.value, args)
+
+    return jax.vmap(one)(y0s)
+
+
+@eqx.filter_jit
+def _covariance(free: Array, template: Array, mask: Array, c: Array, b: Array, obs: Observations,
+                nb: _Numbers, loss: str, bias: str):
+    """Covariance of the free position coordinates (plus offsets) in the anchor frame.
+
+    Returns (cov of free coordinates (F, F), residual sigma^2 [m^2]).
+    """
+    idx = jnp.nonzero(mask.ravel(), size=free.shape[0])[0]
+
+    def errs(theta):
+        xf, cc, bb = theta
+        x = template.ravel().at[idx].set(xf).reshape(template.shape)
+        return _errors(_State(x, cc, bb), obs, bias)
+
+    theta = (free, c, b)
+    e = errs(theta)
+    jac = jax.jacfwd(errs)(theta)
+    n_b = b.shape[0]
+    j = jnp.concatenate([jac[0], jac[1][:, None], jac[2]], axis=1)  # (M, F + 1 + n)
+    w = _irls_weight(loss, e, nb) * obs.w
+    n_par = free.shape[0] + (1 if bias != "none" else 0) + (n_b if bias == "node" else 0)
+    dof = jnp.maximum(jnp.sum(obs.w) - n_par, 1.0)
+    s2 = jnp.sum(w * e * e) / dof
+    h = (j.T * w) @ j / s2
+    # Unused offsets are pinned by a stiff prior; per-node offsets get their Gaussian prior.
+    prior_c = 1.0 / (10.0**2) if bias != "none" else 1e12
+    prior_b = 1.0 / nb.node_bias_sigma_m**2 if bias == "node" else 1e12
+    prior = jnp.concatenate([jnp.zeros(free.shape[0]), jnp.array([prior_c]), jnp.full(n_b, prior_b)])
+    h = h + jnp.diag(prior)
+    cov = jnp.linalg.inv(h)
+    f = free.shape[0]
+    return cov[:f, :f], s2
+
+
+# ---------------------------------------------------------------------------------------------
+# Public entry points
+
+
+def _active_nodes(i: np.ndarray, j: np.ndarray, n: int, a0: int) -> np.ndarray:
+    """Boolean (N,) mask of the nodes connected to a0 through measured pairs."""
+    adj = [[] for _ in range(n)]
+    for u, v in zip(i.tolist(), j.tolist()):
+        adj[u].append(v)
+        adj[v].append(u)
+    seen = np.zeros(n, dtype=bool)
+    stack = [a0]
+    seen[a0] = True
+    while stack:
+        u = stack.pop()
+        for v in adj[u]:
+            if not seen[v]:
+                seen[v] = True
+                stack.append(v)
+    return seen
+
+
+def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParams | None = None,
+          node_ids: tuple[str, ...] | None = None) -> BatchSolution:
+    """Robust batch fit of static node positions from a range stream.
+
+    Args:
+        range_m: (K, N, N) ranges [m], NaN = missing.
+        anchors: (a0, a1, a2) node indices that define the output frame.
+        params: `BatchParams` (defaults when None).
+        node_ids: optional ids, only used in error messages.
+
+    Returns:
+        A `BatchSolution` in the anchor frame.
+
+    Raises:
+        JaxcalError: when a0, a1 or a2 are not connected by ranges, or fewer than dim + 1 nodes are.
+    """
+    p = params or BatchParams()
+    r = np.asarray(range_m, dtype=np.float64)
+    if r.ndim != 3 or r.shape[1] != r.shape[2]:
+        raise JaxcalError(f"batch: expected ranges of shape (K, N, N), got {r.shape}")
+    n = r.shape[1]
+    ids = node_ids or tuple(str(k) for k in range(n))
+    a0, a1, a2 = anchors
+    i_m, j_m, z_m, w_m = observations(r, "median")
+    if z_m.size == 0:
+        raise JaxcalError("batch: the dataset has no finite ranges")
+    active = _active_nodes(i_m, j_m, n, a0)
+    for a in (a1, a2):
+        if not active[a]:
+            raise JaxcalError(f"batch: frame node {ids[a]!r} has no ranges connecting it to a0 {ids[a0]!r}")
+    if active.sum() < p.dim + 1:
+        raise JaxcalError(f"batch: need at least {p.dim + 1} connected nodes, got {int(active.sum())}")
+    sub = np.flatnonzero(active)
+    remap = -np.ones(n, dtype=np.int64)
+    remap[sub] = np.arange(sub.size)
+    m = len(sub)
+
+    def to_obs(i, j, z, w):
+        keep = active[i] & active[j]
+        return Observations(jnp.asarray(remap[i[keep]]), jnp.asarray(remap[j[keep]]),
+                            jnp.asarray(z[keep], dtype=float), jnp.asarray(w[keep], dtype=float))
+
+    obs_med = to_obs(i_m, j_m, z_m, w_m)
+    d_pair = np.full((m, m), np.nan)
+    d_pair[np.asarray(obs_med.i), np.asarray(obs_med.j)] = np.asarray(obs_med.z)
+    d_pair[np.asarray(obs_med.j), np.asarray(obs_med.i)] = np.asarray(obs_med.z)
+    w_pair = np.isfinite(d_pair).astype(float)
+    nb = _Numbers.of(p)
+    key = jax.random.PRNGKey(p.seed)
+    x0s = _initial_starts(jnp.asarray(np.nan_to_num(d_pair)), jnp.asarray(w_pair), key, p.dim, p.init,
+                          p.n_starts, p.smacof_iters)
+    s_count = x0s.shape[0]
+    y0s = _State(x0s, jnp.zeros(s_count), jnp.zeros((s_count, m)))
+    states, costs = _fit_starts(y0s, obs_med, nb, p.loss, p.bias, p.solver, p.tol, p.max_steps)
+    costs = np.where(np.isfinite(np.asarray(costs)), np.asarray(costs), np.inf)
+    best = int(np.argmin(costs))
+    state = jax.tree.map(lambda a: a[best], states)
+    obs = obs_med
+    if p.summary == "all":
+        obs = to_obs(*observations(r, "all"))
+        states2, _ = _fit_starts(jax.tree.map(lambda a: a[None], state), obs, nb, p.loss, p.bias,
+                                 p.solver, p.tol, p.max_steps)
+        state = jax.tree.map(lambda a: a[0], states2)
+
+    x_sub = np.asarray(state.x)
+    x_frame_sub = to_frame(x_sub, int(remap[a0]), int(remap[a1]), int(remap[a2]))
+    if p.dim == 3:
+        # Ranges cannot tell a 3-D scene from its mirror image through the a0-a1-a2 plane; pick the
+        # one where the other nodes lie mostly above it (z up), or below with z_up=false.
+        others = np.ones(m, dtype=bool)
+        others[[remap[a0], remap[a1], remap[a2]]] = False
+        zsum = float(np.sum(x_frame_sub[others, 2]))
+        if (zsum < 0) == p.z_up:
+            x_frame_sub[:, 2] *= -1.0
+    # Gauge-fixed coordinates: a0 fixed; a1 only x; in 3-D a2 has no z.
+    mask = np.ones((m, p.dim), dtype=bool)
+    mask[remap[a0], :] = False
+    mask[remap[a1], 1:] = False
+    if p.dim == 3:
+        mask[remap[a2], 2] = False
+    x_frame_sub[~mask] = 0.0
+    free = x_frame_sub[mask]
+    cov_free, s2 = _covariance(jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c,
+                               state.b, obs, nb, p.loss, p.bias)
+    cov_free = np.asarray(cov_free)
+    full_idx = np.flatnonzero(mask.ravel())
+    cov_all = np.zeros((m * p.dim, m * p.dim))
+    cov_all[np.ix_(full_idx, full_idx)] = cov_free
+    cov_nodes = np.stack([cov_all[k * p.dim:(k + 1) * p.dim, k * p.dim:(k + 1) * p.dim] for k in range(m)])
+    cov_nodes = 0.5 * (cov_nodes + np.swapaxes(cov_nodes, 1, 2))
+    bad = ~np.isfinite(cov_nodes).all(axis=(1, 2))
+    cov_nodes[bad] = np.nan
+
+    position = np.full((n, p.dim), np.nan)
+    position[sub] = x_frame_sub
+    covariance = np.full((n, p.dim, p.dim), np.nan)
+    covariance[sub] = cov_nodes
+    node_off = np.full(n, np.nan)
+    node_off[sub] = np.asarray(state.b) if p.bias == "node" else 0.0
+    return BatchSolution(
+        position=position, covariance=covariance,
+        offset_m=float(state.c) if p.bias != "none" else 0.0, node_offset_m=node_off,
+        cost=float(costs[best]), start_costs=costs, residual_sigma_m=float(np.sqrt(s2)),
+    )
+
+
+def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> Result:
+    """`--method batch`: robust batch calibration of a static mesh (see the module docstring).
+
+    Args:
+        dataset: a `MeshDataset`.
+        params: overrides of `BatchParams` (strings from `--set` are cast).
+        config: frame configuration name (`dataset.config(config)` gives a0, a1, a2).
+
+    Returns:
+        A `Result` with final positions and covariances in the a0/a1/a2 frame, no track.
+    """
+    from jaxcal import __version__
+
+    p = with_overrides(BatchParams(), params)
+    anchors = dataset.config(config)
+    sol = solve(dataset.range, anchors, p, dataset.node_ids)
+    return Result(
+        ids=dataset.node_ids, position=sol.position, method="batch", dataset=dataset.name,
+        frame="anchors:" + ",".join(str(a) for a in anchors), params=as_dict(p),
+        covariance=sol.covariance, software=f"jaxcal {__version__}",
+    )
