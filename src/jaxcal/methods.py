@@ -16,6 +16,8 @@ from jaxcal.errors import JaxcalError
 
 MESH_METHODS: dict[str, str] = {
     "cf": "jaxcal.mesh.closed_form:calibrate",
+    "pgp": "jaxcal.mesh.pgp:calibrate",
+    "parametric": "jaxcal.mesh.parametric:calibrate",
     "batch": "jaxcal.mesh.batch:calibrate",
 }
 

@@ -1,0 +1,255 @@
+"""Grid machinery of the grid-based Bayesian self-calibration filter (paper 000, Section III).
+
+One square grid of cell centres `(x, y) = ((ix - c) * cell_m, (iy - c) * cell_m)` for
+`ix, iy = 0 .. 2c`, shared by every node, so that the posteriors of all nodes are one batched array of
+shape `(nodes, nx, ny)` with `nx = ny = 2c + 1`; the origin (a0) is the centre cell. Per-node regions are
+log-masks on that grid (eq. 5-6):
+
+- a0: the origin cell only (no uncertainty, Section III-A1);
+- a1: the cells on the positive x axis, `iy = c, ix >= c`: this row *is* the 1-D histogram of eq. (5)
+  over `[0, d_max]` with `d_max = c * cell_m` and bins of `cell_m` (the 2-D motion and likelihood
+  restricted to the row reduce exactly to the 1-D ones);
+- a2: the half plane `y >= 0` (eq. 6); every other node: the whole grid.
+
+Extent rule (`extent_radius`): the half-width R is the largest shortest-path distance from a0 through
+the graph of per-pair median ranges (so every node a chain of ranges can place is covered, and a few
+outliers do not blow the grid up), plus `margin_m`, capped by `extent_m`.
+
+The per-item kernels here (one node, one pair) are plain functions; the filter in `pgp.py` vmaps them.
+`node_loglik` is the one hot function (eq. 11); a faster implementation (FFT ring convolution, windows)
+can replace it behind the same signature.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+__all__ = [
+    "Grid",
+    "extent_radius",
+    "make_grid",
+    "region_masks",
+    "safe_norm",
+    "top_hypotheses",
+    "predict",
+    "pair_loglik",
+    "node_loglik",
+    "window_estimate",
+    "mean_cov",
+]
+
+
+class Grid(eqx.Module):
+    """Square grid `[-c, c]^2 * cell_m` of cell centres (static: its shape is compile-time).
+
+    Attributes:
+        n_half: c, cells on each side of the origin; the grid has `(2c + 1)^2` cells.
+        cell_m: cell size [m].
+    """
+
+    n_half: int = eqx.field(static=True)
+    cell_m: float = eqx.field(static=True)
+
+    @property
+    def n_side(self) -> int:
+        return 2 * self.n_half + 1
+
+    @property
+    def n_cells(self) -> int:
+        return self.n_side * self.n_side
+
+    def axis(self, dtype=None) -> Float[Array, " n"]:
+        """(n,) cell-centre coordinates along one axis [m]."""
+        return (jnp.arange(self.n_side, dtype=dtype or jnp.result_type(float)) - self.n_half) * self.cell_m
+
+    def cells(self, dtype=None) -> Float[Array, "cells 2"]:
+        """(nx * ny, 2) cell centres [m], flat index `ix * ny + iy`."""
+        a = self.axis(dtype)
+        gx, gy = jnp.meshgrid(a, a, indexing="ij")
+        return jnp.stack([gx.ravel(), gy.ravel()], axis=-1)
+
+
+def make_grid(radius_m: float, cell_m: float) -> Grid:
+    """The smallest grid of cells `cell_m` whose half-width is at least `radius_m`."""
+    return Grid(n_half=max(1, int(math.ceil(radius_m / cell_m - 1e-9))), cell_m=float(cell_m))
+
+
+def extent_radius(ranges: np.ndarray, a0: int, margin_m: float, cap_m: float) -> float:
+    """Half-width R [m] of the square grid (host NumPy; runs once per dataset).
+
+    Args:
+        ranges: (K, N, N) symmetric ranges [m], NaN missing.
+        a0: index of the origin node.
+        margin_m: added to the farthest shortest-path distance.
+        cap_m: upper bound on R (`extent_m`).
+
+    Returns:
+        R = min(cap_m, max_i shortest_path(a0 -> i) + margin_m) over the graph of per-pair median
+        ranges; `cap_m` when no node is reachable.
+    """
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(ranges, axis=0) if ranges.shape[0] else np.full(ranges.shape[1:], np.nan)
+    n = med.shape[0]
+    dist = np.where(np.isfinite(med), med, np.inf)
+    np.fill_diagonal(dist, 0.0)
+    for k in range(n):  # Floyd-Warshall: N is small (tens of nodes)
+        dist = np.minimum(dist, dist[:, k : k + 1] + dist[k : k + 1, :])
+    reach = dist[a0][np.isfinite(dist[a0])]
+    if reach.size <= 1:
+        return float(cap_m)
+    return float(min(cap_m, reach.max() + margin_m))
+
+
+def region_masks(grid: Grid, n_nodes: int) -> Bool[np.ndarray, "nodes nx ny"]:
+    """(N, nx, ny) allowed cells per node, nodes ordered (a0, a1, a2, others): see the module docstring."""
+    c, n = grid.n_half, grid.n_side
+    m = np.ones((n_nodes, n, n), dtype=bool)
+    m[0] = False
+    m[0, c, c] = True
+    m[1] = False
+    m[1, c:, c] = True
+    m[2, :, :c] = False
+    return m
+
+
+def safe_norm(v: Float[Array, "... 2"]) -> Float[Array, "..."]:
+    """Euclidean norm over the last axis with a finite gradient at zero."""
+    d2 = jnp.sum(v * v, axis=-1)
+    pos = d2 > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, d2, 1.0)), 0.0)
+
+
+def top_hypotheses(
+    logp: Float[Array, " cells"], cells: Float[Array, "cells 2"], n_hyp: int, tau: Float[Array, ""]
+) -> tuple[Float[Array, "hyp 2"], Float[Array, " hyp"]]:
+    """Position hypotheses of one node, eq. (10): its most probable cells up to mass `tau`.
+
+    Cells are taken in order of decreasing probability while the mass taken *before* a cell is below
+    `tau` (so the set is the smallest reaching `tau`), at most `n_hyp` of them; weights are renormalised
+    over the set.
+
+    Args:
+        logp: (C,) normalised log posterior. cells: (C, 2) cell centres [m].
+        n_hyp: cap on the number of hypotheses (static). tau: mass fraction in (0, 1].
+
+    Returns:
+        (H, 2) hypothesis positions [m] and (H,) log weights (-inf for cells not taken).
+    """
+    vals, idx = jax.lax.top_k(logp, n_hyp)
+    w = jnp.exp(vals)
+    before = jnp.concatenate([jnp.zeros((1,), w.dtype), jnp.cumsum(w)[:-1]])
+    keep = (before < tau) & jnp.isfinite(vals)
+    keep = keep.at[0].set(True)
+    lw = jnp.where(keep, vals, -jnp.inf)
+    return cells[idx], lw - jax.nn.logsumexp(lw)
+
+
+def predict(
+    logp: Float[Array, " cells"],
+    cells: Float[Array, "cells 2"],
+    top_k: int,
+    step_m: Float[Array, ""],
+    sigma_v: Float[Array, ""],
+) -> Float[Array, " cells"]:
+    """Motion update of one node, eq. (7)-(8), over its `top_k` most probable cells (log space).
+
+    `log pbar(g_i) = logsumexp_{m in K} [log p_m - (|g_i - g_m| - v dt)^2 / (2 sigma_v^2)]`; the
+    Gaussian's constant is dropped (it cancels in the normalisation of eq. 12).
+
+    Args:
+        logp: (C,) log posterior of the previous epoch. cells: (C, 2) [m].
+        top_k: K of eq. (7) (static). step_m: v * dt [m]. sigma_v: transition std [m].
+
+    Returns:
+        (C,) unnormalised log prior.
+    """
+    vals, idx = jax.lax.top_k(logp, top_k)
+    d = safe_norm(cells[:, None, :] - cells[idx][None, :, :])
+    logt = -0.5 * jnp.square((d - step_m) / sigma_v)
+    return jax.nn.logsumexp(vals[None, :] + logt, axis=1)
+
+
+def pair_loglik(
+    cells: Float[Array, "cells 2"],
+    hyp_pos: Float[Array, "hyp 2"],
+    hyp_logw: Float[Array, " hyp"],
+    z: Float[Array, ""],
+    sigma: Float[Array, ""],
+    p_out: Float[Array, ""],
+) -> Float[Array, " cells"]:
+    """Log of one factor of eq. (11): `log sum_l w_l exp(-(|g - g_l| - z)^2 / (2 sigma^2))` at every cell.
+
+    With `p_out > 0` the factor is mixed with a constant floor, `(1 - p_out) * factor + p_out` (a robust
+    option for outlier ranges; `p_out = 0` is the paper's eq. 11).
+
+    Args:
+        cells: (C, 2) [m]. hyp_pos: (H, 2) [m]. hyp_logw: (H,) normalised log weights.
+        z: measured range [m]. sigma: range std [m]. p_out: floor weight in [0, 1).
+
+    Returns:
+        (C,) log likelihood.
+    """
+    d = safe_norm(cells[:, None, :] - hyp_pos[None, :, :])
+    ll = jax.nn.logsumexp(hyp_logw[None, :] - 0.5 * jnp.square((d - z) / sigma), axis=1)
+    return jnp.logaddexp(jnp.log1p(-p_out) + ll, jnp.log(p_out))
+
+
+def node_loglik(
+    cells: Float[Array, "cells 2"],
+    hyp_pos: Float[Array, "nodes hyp 2"],
+    hyp_logw: Float[Array, "nodes hyp"],
+    hyp_sigma: Float[Array, " nodes"],
+    z_i: Float[Array, " nodes"],
+    use_i: Bool[Array, " nodes"],
+    p_out: Float[Array, ""],
+) -> Float[Array, " cells"]:
+    """Log likelihood eq. (11) of one node over the grid: the sum over neighbours j with `use_i[j]`.
+
+    Args:
+        cells: (C, 2) [m]. hyp_pos, hyp_logw: (N, H, 2), (N, H) hypotheses of every node.
+        hyp_sigma: (N,) range std to use with each neighbour [m]. z_i: (N,) ranges to the neighbours [m]
+            (NaN missing). use_i: (N,) which neighbours contribute. p_out: see `pair_loglik`.
+
+    Returns:
+        (C,) log likelihood (0 where no neighbour contributes).
+    """
+    zs = jnp.where(use_i, z_i, 0.0)
+    per = jax.vmap(pair_loglik, in_axes=(None, 0, 0, 0, 0, None))(cells, hyp_pos, hyp_logw, zs, hyp_sigma, p_out)
+    return jnp.sum(jnp.where(use_i[:, None], per, 0.0), axis=0)
+
+
+def window_estimate(
+    logp: Float[Array, " cells"], cells: Float[Array, "cells 2"], r_est: Float[Array, ""]
+) -> Float[Array, " 2"]:
+    """Position estimate eq. (13): posterior-weighted mean of the cells closer than `r_est` to the MLE cell.
+
+    The MLE cell itself is always included (so `r_est` below one cell gives the MLE cell).
+    """
+    m = jnp.argmax(logp)
+    d2 = jnp.sum(jnp.square(cells - cells[m]), axis=-1)
+    inwin = (d2 < r_est * r_est) | (d2 == 0)
+    w = jax.nn.softmax(jnp.where(inwin, logp, -jnp.inf))
+    return w @ cells
+
+
+def mean_cov(logp: Float[Array, " cells"], cells: Float[Array, "cells 2"]) -> tuple[Float[Array, " 2"], Float[Array, "2 2"]]:
+    """Mean [m] and covariance [m^2] of a (normalised) grid posterior over the whole grid."""
+    w = jnp.exp(logp - jax.nn.logsumexp(logp))
+    mu = w @ cells
+    dc = cells - mu
+    return mu, (dc * w[:, None]).T @ dc
+
+
+def flat_index(ix: Int[Array, "..."], iy: Int[Array, "..."], grid: Grid) -> Int[Array, "..."]:
+    """Flat cell index of `(ix, iy)`."""
+    return ix * grid.n_side + iy
