@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("simulate", "simulate a mesh or trajectory dataset (--scenario torgau, campus, ...)"),
     "stats": ("stats", "ranging error statistics by LOS / NLOS (Table I)"),
     "evaluate": ("evaluate", "compare a result with the ground truth of a dataset"),
+    "gate": ("gate", "UWB range-zone gated place recognition (--simulate DIR for a demo yard)"),
 }
 
 
