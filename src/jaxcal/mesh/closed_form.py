@@ -1,0 +1,197 @@
+"""Closed-form (CF) baseline of the grid paper, Section II-B: one independent 2-D fix per epoch.
+
+Per epoch k, with z_ij the measured distance (the mean of i->j and j->i when both exist):
+
+1. Frame, eqs. (1)-(2): a0 = (0, 0); a1 = (z_01, 0); a2 = (x2, sqrt(z_02^2 - x2^2)) with
+   x2 = (z_02^2 - z_12^2 + x1^2) / (2 x1). A missing z_01 leaves the whole epoch empty; a missing
+   z_02 / z_12 or a negative radicand leaves a2 (and hence every later node) empty.
+2. Placement rule for every other node, in rounds: in each round, every node not yet placed whose
+   *references* (nodes placed in an earlier round with a measured distance to it) number at least
+   `min_refs` (>= 3) and are well spread (the smaller principal standard deviation of the reference
+   positions is at least `min_spread_m`, i.e. they are not nearly collinear) is placed by linear least
+   squares over all its references: subtracting the mean of the circle equations |x - p_j|^2 = z_j^2
+   gives 2 (p_j - p_mean) . (x - p_mean) = |p_j - p_mean|^2 - z_j^2 - mean(...), solved by the 2 x 2
+   normal equations. Rounds repeat until no node is added (at most N - 3 rounds). With
+   `anchors_only=True` the references are a0, a1, a2 only (the stricter rule the paper's Fig. 10
+   discusses: a node whose range to a1 is missing is never placed).
+   Anything not placeable is NaN for that epoch, never an error.
+3. The final position of a node is the component-wise median of its per-epoch fixes (robust to the
+   NLOS outlier epochs); NaN when it was never placed. The result keeps the per-epoch track, so the
+   availability of a node (Fig. 10) is the fraction of epochs with a fix.
+
+The per-epoch kernel is written for one distance matrix and `jax.vmap`-ped over epochs inside one
+`jax.jit`; parameters are traced arrays, so changing them does not recompile.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+from jaxcal.data import MeshDataset, Result
+from jaxcal.errors import JaxcalError
+from jaxcal.params import as_dict, with_overrides
+
+__all__ = ["ClosedFormParams", "symmetrise", "place_epochs", "calibrate"]
+
+
+class ClosedFormParams(eqx.Module):
+    """Parameters of the closed-form baseline.
+
+    Attributes:
+        min_refs: least number of placed references a node needs (>= 3: two give a mirror ambiguity).
+        min_spread_m: least spread [m] of the references across their main axis (smaller principal
+            standard deviation of their positions); guards against near-collinear references.
+        anchors_only: use only a0, a1, a2 as references (the paper's stricter dependency on a1).
+    """
+
+    min_refs: int = 3
+    min_spread_m: float = 1.0
+    anchors_only: bool = False
+
+
+def symmetrise(ranges: np.ndarray) -> np.ndarray:
+    """(K, N, N) ranges -> symmetric distances: mean of i->j and j->i where both exist, else the one
+    that exists, else NaN."""
+    r = np.asarray(ranges, dtype=np.float64)
+    rt = np.swapaxes(r, 1, 2)
+    both = np.isfinite(r) & np.isfinite(rt)
+    out = np.where(np.isfinite(r), r, rt)
+    return np.where(both, 0.5 * (r + rt), out)
+
+
+def _place_one_epoch(
+    d: Float[Array, "n n"],
+    anchors: Int[Array, "3"],
+    min_refs: Float[Array, ""],
+    min_spread: Float[Array, ""],
+    anchors_only: Bool[Array, ""],
+) -> Float[Array, "n 2"]:
+    n = d.shape[0]
+    a0, a1, a2 = anchors[0], anchors[1], anchors[2]
+    idx = jnp.arange(n)
+    nan = jnp.array(jnp.nan, d.dtype)
+
+    # eqs. (1)-(2)
+    x1 = d[a0, a1]
+    ok1 = jnp.isfinite(x1) & (x1 > 0)
+    x1s = jnp.where(ok1, x1, 1.0)
+    z02, z12 = d[a0, a2], d[a1, a2]
+    x2 = (z02**2 - z12**2 + x1s**2) / (2 * x1s)
+    rad = z02**2 - x2**2
+    ok2 = ok1 & jnp.isfinite(rad) & (rad >= 0)
+    y2 = jnp.sqrt(jnp.where(ok2, rad, 0.0))
+
+    pos = jnp.full((n, 2), nan)
+    pos = pos.at[a0].set(jnp.where(ok1, jnp.zeros(2, d.dtype), nan))
+    pos = pos.at[a1].set(jnp.where(ok1, jnp.stack([x1s, jnp.zeros((), d.dtype)]), nan))
+    pos = pos.at[a2].set(jnp.where(ok2, jnp.stack([x2, y2]), nan))
+    is_anchor = (idx == a0) | (idx == a1) | (idx == a2)
+    dz = jnp.where(jnp.isfinite(d), d, 0.0)
+
+    def one_round(_, pos):
+        placed = jnp.isfinite(pos).all(axis=1)
+        ref_ok = placed & jnp.where(anchors_only, is_anchor, True)
+        w = ref_ok[None, :] & jnp.isfinite(d) & (idx[:, None] != idx[None, :])  # (node i, ref j)
+        wf = w.astype(d.dtype)
+        m = wf.sum(axis=1)
+        ms = jnp.maximum(m, 1.0)
+        p = jnp.where(placed[:, None], pos, 0.0)  # (j, 2)
+        pbar = (wf @ p) / ms[:, None]  # (i, 2)
+        q = p[None, :, :] - pbar[:, None, :]  # (i, j, 2) references centred per node
+        c = jnp.sum(q * q, axis=-1) - dz**2
+        cbar = jnp.sum(wf * c, axis=1) / ms
+        b = c - cbar[:, None]
+        a = 2.0 * q
+        mat = jnp.einsum("ij,ijk,ijl->ikl", wf, a, a)
+        vec = jnp.einsum("ij,ijk,ij->ik", wf, a, b)
+        # spread: smaller eigenvalue of the references' covariance (mat / 4m)
+        cov = mat / (4.0 * ms[:, None, None])
+        tr2 = 0.5 * (cov[:, 0, 0] + cov[:, 1, 1])
+        det = cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] ** 2
+        lam_min = tr2 - jnp.sqrt(jnp.maximum(tr2**2 - det, 0.0))
+        good = (~placed) & (m >= min_refs) & (lam_min >= min_spread**2) & (lam_min > 0)
+        detm = jnp.where(good, mat[:, 0, 0] * mat[:, 1, 1] - mat[:, 0, 1] ** 2, 1.0)
+        y0 = (mat[:, 1, 1] * vec[:, 0] - mat[:, 0, 1] * vec[:, 1]) / detm
+        y1 = (mat[:, 0, 0] * vec[:, 1] - mat[:, 1, 0] * vec[:, 0]) / detm
+        new = pbar + jnp.stack([y0, y1], axis=1)
+        return jnp.where(good[:, None], new, pos)
+
+    return jax.lax.fori_loop(0, max(n - 3, 0), one_round, pos)
+
+
+@jax.jit
+def _place_all(d, anchors, min_refs, min_spread, anchors_only):
+    return jax.vmap(_place_one_epoch, in_axes=(0, None, None, None, None))(
+        d, anchors, min_refs, min_spread, anchors_only
+    )
+
+
+def place_epochs(
+    distances: np.ndarray, anchors: tuple[int, int, int], params: ClosedFormParams | None = None
+) -> np.ndarray:
+    """Closed-form fixes of every node at every epoch.
+
+    Args:
+        distances: (K, N, N) symmetric distances [m] (see `symmetrise`), NaN where missing.
+        anchors: (a0, a1, a2) node indices defining the frame.
+        params: placement rule; `ClosedFormParams()` when None.
+
+    Returns:
+        (K, N, 2) positions [m] in the anchor frame; NaN where a node could not be placed.
+    """
+    p = ClosedFormParams() if params is None else params
+    if int(p.min_refs) < 3:
+        raise JaxcalError(f"parameter min_refs: must be at least 3, got {p.min_refs}")
+    if not float(p.min_spread_m) >= 0:
+        raise JaxcalError(f"parameter min_spread_m: must be non-negative, got {p.min_spread_m}")
+    d = jnp.asarray(distances)
+    if d.shape[0] == 0:
+        return np.zeros((0, d.shape[1], 2))
+    out = _place_all(
+        d,
+        jnp.asarray(anchors, dtype=jnp.int32),
+        jnp.asarray(float(p.min_refs), d.dtype),
+        jnp.asarray(float(p.min_spread_m), d.dtype),
+        jnp.asarray(bool(p.anchors_only)),
+    )
+    return np.asarray(out, dtype=np.float64)
+
+
+def calibrate(
+    dataset: MeshDataset, params: Mapping[str, Any] | ClosedFormParams | None = None, config: str | None = None
+) -> Result:
+    """Closed-form calibration of a mesh dataset (registered as method `cf`).
+
+    Args:
+        dataset: mesh dataset, ranges (K, N, N).
+        params: overrides of `ClosedFormParams` (a mapping, e.g. from `--set`) or a `ClosedFormParams`.
+        config: name of the frame configuration (a0, a1, a2); the dataset's default when None.
+
+    Returns:
+        Result in frame `anchors:a0,a1,a2` with the (K, N, 2) per-epoch track and the per-node
+        median of the track as final position.
+    """
+    p = params if isinstance(params, ClosedFormParams) else with_overrides(ClosedFormParams(), params)
+    anchors = dataset.config(config)
+    track = place_epochs(symmetrise(dataset.range), anchors, p)
+    has = np.isfinite(track).all(axis=2)  # (K, N)
+    final = np.full((dataset.n_nodes, 2), np.nan)
+    for i in np.flatnonzero(has.any(axis=0)):
+        final[i] = np.median(track[has[:, i], i], axis=0)
+    return Result(
+        ids=dataset.node_ids,
+        position=final,
+        method="cf",
+        dataset=dataset.name,
+        frame="anchors:{},{},{}".format(*anchors),
+        params={**as_dict(p), "config": config},
+        track_time=dataset.time,
+        track_position=track,
+    )
