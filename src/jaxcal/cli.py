@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("info", "summarise a jaxcal file"),
     "validate": ("validate", "check a file against the HDF5 contract"),
     "calibrate": ("calibrate", "estimate node or anchor positions (--method cf, pgp, gp, ...)"),
+    "record": ("record", "record ranges from a serial UWB device (NLink, DWM1001) or replay a capture"),
     "simulate": ("simulate", "simulate a mesh or trajectory dataset (--scenario torgau, campus, ...)"),
     "stats": ("stats", "ranging error statistics by LOS / NLOS (Table I)"),
     "evaluate": ("evaluate", "compare a result with the ground truth of a dataset"),
