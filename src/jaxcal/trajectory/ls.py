@@ -1,0 +1,128 @@
+"""Linear least-squares multilateration of each anchor (the `ls` baseline, "one-key calibration").
+
+For tag positions p_i and ranges r_i, |p_i - a|^2 = r_i^2 is linear in (a, c = |a|^2):
+`-2 p_i . a + c = r_i^2 - |p_i|^2` (positions centred first for conditioning). When the tag positions
+of an anchor are (nearly) planar (z spread below `planar_tol_m`) the z column is degenerate; then the
+2-D problem in (a_x, a_y, c' = |a_xy|^2 + h^2) is solved and the height above the platform plane is
+h = sqrt(c' - |a_xy|^2), placed on the side `side` (+1 = above the tags). The covariance is
+s^2 (A^T A)^-1 of the linear system (s^2 = residual variance of the linear equations), propagated to
+the height by the delta method in the planar case.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from jaxcal.data import Result
+from jaxcal.params import as_dict, with_overrides
+
+__all__ = ["LSParams", "multilaterate", "multilaterate_all", "calibrate"]
+
+
+class LSParams(eqx.Module):
+    """Parameters of `ls` (defaults).
+
+    Attributes:
+        min_ranges: anchors with fewer valid ranges get no estimate (NaN).
+        planar_tol_m: tag z standard deviation [m] below which an anchor's data count as planar.
+        side: +1 anchors above the platform plane, -1 below (planar case only).
+        order, knot_dt_s, max_gap_s: pose B-spline (order 4 = cubic; 0 = automatic).
+        time_offset_s, estimate_offset, max_offset_s: pose minus range clock offset [s] and its search.
+    """
+
+    min_ranges: int = 10
+    planar_tol_m: float = 0.3
+    side: float = 1.0
+    order: int = 4
+    knot_dt_s: float = 0.0
+    max_gap_s: float = 0.0
+    time_offset_s: float = 0.0
+    estimate_offset: bool = False
+    max_offset_s: float = 1.0
+
+
+def _solve(a_mat, b_vec, mask):
+    w = mask.astype(a_mat.dtype)
+    ata = (a_mat * w[:, None]).T @ a_mat
+    atb = (a_mat * w[:, None]).T @ b_vec
+    ridge = 1e-10 * jnp.trace(ata) / ata.shape[0]
+    ata_r = ata + ridge * jnp.eye(ata.shape[0])
+    x = jnp.linalg.solve(ata_r, atb)
+    n = jnp.sum(w)
+    res = (a_mat @ x - b_vec) * w
+    s2 = jnp.sum(res**2) / jnp.maximum(n - a_mat.shape[1], 1.0)
+    return x, s2 * jnp.linalg.inv(ata_r)
+
+
+def multilaterate(
+    pos: Float[Array, "n 3"], rng: Float[Array, " n"], mask: Bool[Array, " n"],
+    planar_tol_m: float = 0.3, side: float = 1.0,
+) -> tuple[Float[Array, " 3"], Float[Array, "3 3"]]:
+    """Linear LS position [m] and covariance [m^2] of one anchor from (masked) tag positions and ranges."""
+    w = mask.astype(pos.dtype)
+    n = jnp.maximum(jnp.sum(w), 1.0)
+    centre = jnp.sum(pos * w[:, None], axis=0) / n
+    q = (pos - centre) * w[:, None]
+    zstd = jnp.sqrt(jnp.sum(q[:, 2] ** 2) / n)
+    rhs = rng**2 - jnp.sum(q**2, axis=-1)
+    ones = jnp.ones_like(rng)
+    # 3-D: unknowns (a, c).
+    x3, c3 = _solve(jnp.concatenate([-2.0 * q, ones[:, None]], axis=1), rhs, mask)
+    est3, cov3 = x3[:3], c3[:3, :3]
+    # Planar: unknowns (a_x, a_y, c'), height from c' - |a_xy|^2.
+    x2, c2 = _solve(jnp.stack([-2.0 * q[:, 0], -2.0 * q[:, 1], ones], axis=1), rhs + q[:, 2] ** 2, mask)
+    h2 = x2[2] - x2[0] ** 2 - x2[1] ** 2
+    h = jnp.sqrt(jnp.maximum(h2, 1e-6))
+    g = jnp.array([-x2[0] / h, -x2[1] / h, 0.5 / h])
+    est2 = jnp.array([x2[0], x2[1], side * h])
+    cov2 = jnp.zeros((3, 3)).at[:2, :2].set(c2[:2, :2])
+    cxz = c2[:2, :] @ g
+    cov2 = cov2.at[:2, 2].set(cxz).at[2, :2].set(cxz).at[2, 2].set(g @ c2 @ g)
+    planar = zstd < planar_tol_m
+    est = jnp.where(planar, est2, est3) + centre
+    cov = jnp.where(planar, cov2, cov3)
+    return est, cov
+
+
+def multilaterate_all(pos, rng, mask, planar_tol_m: float = 0.3, side: float = 1.0):
+    """`multilaterate` vmapped over anchors: (A, n, 3), (A, n), (A, n) -> (A, 3), (A, 3, 3)."""
+    return jax.vmap(lambda p, r, m: multilaterate(p, r, m, planar_tol_m, side))(pos, rng, mask)
+
+
+def calibrate(dataset, params=None, config=None) -> Result:
+    """`--method ls`: linear least-squares multilateration of every anchor (frame `world`).
+
+    Args:
+        dataset: TrajectoryDataset. params: overrides of `LSParams`. config: ignored.
+
+    Returns:
+        Result with `position` (A, 3) and `covariance` (A, 3, 3); NaN for anchors with too few ranges.
+    """
+    from jaxcal.trajectory.poses import prepare
+
+    p = with_overrides(LSParams(), params)
+    groups, info = prepare(dataset, p.order, p.knot_dt_s, p.max_gap_s, p.time_offset_s,
+                           p.estimate_offset, p.max_offset_s)
+    est, cov = jax.jit(multilaterate_all, static_argnums=(3, 4))(
+        groups.position, groups.range, groups.mask, p.planar_tol_m, p.side)
+    return finish(dataset, "ls", p, groups, est, cov, info)
+
+
+def finish(dataset, method, p, groups, est, cov, info) -> Result:
+    """Build the Result: NaN rows for anchors with fewer than `p.min_ranges` ranges or failed fits."""
+    from jaxcal import __version__
+
+    est = np.array(est, dtype=float)
+    cov = np.array(cov, dtype=float)
+    count = np.asarray(groups.mask).sum(axis=1)
+    bad = (count < p.min_ranges) | ~np.isfinite(est).all(axis=1) | ~np.isfinite(cov).all(axis=(1, 2))
+    est[bad] = np.nan
+    cov[bad] = np.nan
+    params = as_dict(p)
+    params.update({f"info_{k}": v for k, v in info.items()})
+    return Result(ids=dataset.anchor_ids, position=est, method=method, dataset=dataset.name, frame="world",
+                  params=params, covariance=cov, software=f"jaxcal {__version__}")
