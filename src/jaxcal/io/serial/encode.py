@@ -172,3 +172,71 @@ def les_line(anchors: Sequence[tuple[str, Sequence[float], float]], le_us: int,
     if est is not None:
         toks.append(f"est[{est[0]:.2f},{est[1]:.2f},{est[2]:.2f},{qf}]")
     return (" ".join(toks) + "\r\n").encode()
+
+
+# ------------------------------------------------------------------------------- random test streams
+
+
+def random_nlink_frame(rng) -> bytes:
+    """A random valid NLink frame of a random decodable type (or an unknown mark). `rng`: random.Random."""
+    kind = rng.randrange(9)
+    t = rng.randrange(1 << 32)
+    volt = rng.randrange(3000, 5200)
+
+    def nodes(k, ids=256):
+        return [(rng.randrange(3), rng.randrange(ids), rng.randrange(-500, 60000), rng.randrange(256), rng.randrange(256))
+                for _ in range(k)]
+
+    if kind <= 1:
+        return nodeframe3(rng.randrange(3), rng.randrange(256), t, rng.randrange(1 << 32), volt, nodes(rng.randrange(9)))
+    if kind == 2:
+        return nodeframe5(rng.randrange(3), rng.randrange(1 << 32), t, t, volt, nodes(rng.randrange(6), 1 << 32))
+    if kind == 3:
+        return aoa_nodeframe0(2, rng.randrange(256), t, 0, volt,
+                              [n[:3] + (rng.randrange(-18000, 18000),) + n[3:] for n in nodes(rng.randrange(6))])
+    if kind == 4:
+        return nodeframe2(2, rng.randrange(256), t, t, volt, [rng.randrange(-9000, 9000) for _ in range(3)],
+                          [n + (t,) for n in nodes(rng.randrange(5))])
+    if kind == 5:
+        tags = [(rng.randrange(256), rng.randrange(256), [(a, rng.randrange(0, 30000)) for a in range(rng.randrange(5))])
+                for _ in range(rng.randrange(4))]
+        return nodeframe4(1, rng.randrange(256), t, t, volt, tags)
+    if kind == 6:
+        return tagframe0(rng.randrange(256), 2, [rng.choice((0, rng.randrange(1, 30000))) for _ in range(8)], t, t, volt)
+    if kind == 7:
+        slots = [(rng.randrange(255), 2, [rng.randrange(-9000, 9000) for _ in range(3)],
+                  [rng.randrange(0, 3000) for _ in range(8)]) for _ in range(rng.randrange(4))]
+        return anchorframe0(slots, t, t, volt, filler=rng.randrange(256))
+    return unknown_frame(rng.randrange(0x0A, 0x40), bytes(rng.randrange(256) for _ in range(rng.randrange(40))))
+
+
+def corrupt(frame: bytes, rng) -> bytes:
+    """Flip one bit of `frame` such that validation must reject it (AnchorFrame0 has no checksum, so
+    only its header, mark or tail byte is hit)."""
+    b = bytearray(frame)
+    if b[1] == 0x00 and len(b) == 896:
+        i = rng.choice((0, 1, 895))
+    else:
+        i = rng.randrange(len(b))
+    b[i] ^= 1 << rng.randrange(8)
+    return bytes(b)
+
+
+def hostile_stream(rng, n_frames: int, p_corrupt: float = 0.2, p_garbage: float = 0.3,
+                   max_garbage: int = 64) -> tuple[bytes, list[bytes]]:
+    """A byte stream of random valid frames, bit-flipped frames and random garbage (0x55 included).
+
+    Returns:
+        (stream, valid): the bytes and the list of the valid frames in it, in order.
+    """
+    out, valid = bytearray(), []
+    for _ in range(n_frames):
+        if rng.random() < p_garbage:
+            out += bytes(rng.randrange(256) for _ in range(rng.randrange(1, max_garbage)))
+        f = random_nlink_frame(rng)
+        if rng.random() < p_corrupt:
+            out += corrupt(f, rng)
+        else:
+            out += f
+            valid.append(f)
+    return bytes(out), valid

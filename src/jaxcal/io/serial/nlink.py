@@ -17,11 +17,14 @@ Stream rules (SPEC 1.7), implemented by `NLinkDecoder`:
 * an unknown function mark with a plausible u16 length and a good checksum is kept as an
   ``"unknown"`` frame (raw only), so the reader stays in sync across frame types it does not decode.
 
-Two guards go beyond SPEC, both against false frames in random garbage, which the weak validation of
-some frame types would otherwise let through with probability 1/256 per false header: TagFrame0 and
-AnchorFrame0 must carry role bytes below 16 (real roles are 0-6), and a frame of a weakly validated
-kind (unknown mark, TagFrame0, AnchorFrame0) is rejected when a checksummed frame of a known type
-starts inside it. A real frame is thus never swallowed by a false one that happens to check out.
+Guards beyond SPEC, against false frames in garbage, which the weak validation of some frame types
+(fixed length, one sum byte or none) would otherwise let through with probability about 1/256 per false
+header: TagFrame0 and AnchorFrame0 must carry role bytes below 16 (real roles are 0-6); TagFrame0's
+quaternion must be unit (within 10 %) or all zero; and a frame of a weakly validated kind (unknown mark,
+TagFrame0, AnchorFrame0) is rejected when a checksummed frame of a known type starts inside it, so a
+real frame is never swallowed by a false one that happens to check out. What remains: a stray 0x55 in
+garbage followed by an unknown mark, a plausible length and a matching sum (about 1 in 4096 stray 0x55
+bytes) is kept as an ``"unknown"`` frame; such frames carry no ranges.
 """
 
 from __future__ import annotations
@@ -262,6 +265,10 @@ def _dec_tagframe0(raw: bytes):
     ident, role = raw[2], raw[3]
     if role >= 16:
         raise FrameError(f"TagFrame0: implausible role byte {role}")
+    q = struct.unpack_from("<4f", raw, 88)
+    qn = math.fsum(v * v for v in q)
+    if not (0.81 <= qn <= 1.21 or raw[88:104] == bytes(16)):
+        raise FrameError("TagFrame0: quaternion is neither unit nor zero")
     dis = tuple(_i24(raw, 22 + 3 * k) / 1000.0 for k in range(8))
     f = {
         "id": ident,
@@ -272,7 +279,7 @@ def _dec_tagframe0(raw: bytes):
         "gyro": struct.unpack_from("<3f", raw, 46),
         "acc": struct.unpack_from("<3f", raw, 58),
         "angle": tuple(v / 100.0 for v in struct.unpack_from("<3h", raw, 82)),
-        "quaternion": struct.unpack_from("<4f", raw, 88),
+        "quaternion": q,
         "local_time": _u32(raw, 108),
         "system_time": _u32(raw, 112),
         "eop": tuple(raw[117 + i] / 100.0 for i in range(3)),
