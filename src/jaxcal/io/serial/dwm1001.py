@@ -419,9 +419,10 @@ class ShellDecoder:
                 self._line(bytes(buf[start:i]), out, True)
             start = i + 1
         del buf[:start]
-        if len(buf) > MAX_LINE + 1:  # +1: a trailing \r is not part of the line
+        if self._discarding or len(buf) > MAX_LINE + 1:  # +1: a trailing \r is not part of the line
+            if not self._discarding:
+                self.stats.checksum_failures += 1
             self.stats.bytes_skipped += len(buf)
-            self.stats.checksum_failures += 1
             buf.clear()
             self._discarding = True
         return out
