@@ -117,11 +117,15 @@ def test_csv_bad_files_raise_one_line(tmp_path, text, fragment):
     assert "\n" not in msg and "bad.csv" in msg and fragment in msg
 
 
-def test_unknown_importer_and_wrong_arity():
+def test_unknown_importer_and_wrong_arity(tmp_path):
     with pytest.raises(JaxcalError, match="unknown importer"):
         import_recording("nope", "x")
     with pytest.raises(JaxcalError, match="takes 2 source"):
         import_recording("cuhksz", "x")
+    with pytest.raises(JaxcalError, match="no such folder"):
+        import_recording("hanyang", "/nonexistent/run")
+    with pytest.raises(JaxcalError, match="no anchor file"):
+        import_recording("hanyang", tmp_path)
     assert set(IMPORTERS) == {"dwm1001-autocal", "hymn", "cuhksz", "hanyang", "csv"}
 
 
@@ -365,8 +369,6 @@ def test_cli_import_csv_and_real(tmp_path):
         (["nope", "x"], "unknown importer"),
         (["csv", "{tmp}/missing.csv"], "no such file"),
         (["csv", "{tmp}/bad.csv"], "missing column"),
-        (["hanyang", "{tmp}"], "no anchor file"),
-        (["cuhksz", "{tmp}/bad.csv"], "takes 2 source"),
     ],
 )
 def test_cli_import_errors_are_one_line(tmp_path, args, fragment):
