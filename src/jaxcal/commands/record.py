@@ -91,16 +91,17 @@ def run(args) -> int:
         summary["calibration"] = calibration
     if args.json:
         print_json(summary)
-    elif args.replay or args.quiet:
+    elif written and (args.replay or args.quiet):
         sys.stderr.write(
             f"{summary['frames']} frames, {summary['ranges']} ranges, {summary['checksum_failures']} checksum "
-            f"failures, {summary['bytes_skipped']} bytes skipped -> {out if written else 'nothing written'}\n"
+            f"failures, {summary['bytes_skipped']} bytes skipped -> {out}\n"
         )
     if not written:
         where = f"; the raw frames are in {out}.journal" if rec.journal is not None else ""
         raise JaxcalError(
             f"no dataset written: {summary['ranges']} ranges between {summary['nodes']} nodes "
-            f"({summary['frames']} frames) is not enough for a {rec.kind() or 'mesh'} file{where}"
+            f"({summary['frames']} frames, {summary['checksum_failures']} checksum failures, "
+            f"{summary['bytes_skipped']} bytes skipped) is not enough for a {rec.kind() or 'mesh'} file{where}"
         )
     return 0
 

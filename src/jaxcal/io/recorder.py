@@ -246,7 +246,8 @@ class Recording:
         if n < 3 or c["time"].size == 0:
             return None
         t = c["time"]
-        b = np.floor((t - t.min()) / self.epoch_s).astype(np.int64)
+        # 1e-9: a time on a window boundary (e.g. 0.6 s / 0.2 s = 2.9999999999999996) opens the next window
+        b = np.floor((t - t.min()) / self.epoch_s + 1e-9).astype(np.int64)
         bins, k = np.unique(b, return_inverse=True)
         K = bins.size
         flat = (k * n + c["src"]) * n + c["dst"]
