@@ -21,6 +21,9 @@ Three implementations of the same ranking, all for one query and `vmap`ped outwa
   the pivot; its slice (at most `capacity` keyframes) is gathered, the other anchors' zones are tested
   on those candidates only, and only they are matched: work O(A log K + capacity * F) instead of
   O(K * F). `search` picks `capacity` per query (powers of two, so few compilations) and is exact.
+
+The sort-based index is an exact continuous version of the paper's discrete range zones ("radii"
+r_i with boundaries widened by delta): a zone is looked up by binary search instead of a bucket id.
 """
 
 from __future__ import annotations
@@ -392,18 +395,22 @@ def search(
     ranges,
     params: GateParams | None = None,
     top_k: int = 5,
+    batch: int = 32,
+    min_capacity: int = 64,
 ) -> Candidates:
     """Gated batched search, exact and proportional in work to the zone sizes.
 
-    Queries are grouped by the capacity their pivot zone needs (a power of two, at least `top_k`,
-    at most K: a query with no usable range lands in the K group, i.e. the full search); each group
-    is one jitted `vmap` of `rank_indexed`, its batch padded to a power of two so that compilations
-    stay few (at most log2(K) capacities times log2(Q) batch sizes).
+    Queries are grouped by the capacity their pivot zone needs (a power of two, at least `top_k`
+    and `min_capacity`, at most K: a query with no usable range lands in the K group, i.e. the full search); each group
+    runs as jitted `vmap`s of `rank_indexed` over chunks of `batch` queries (the last chunk padded),
+    so compilations stay few: one per capacity, at most log2(K / min_capacity) + 1.
 
     Args:
         db, index, anchors: database, its zone index for `anchors`, the anchors (A).
         descriptors: (Q, F) query descriptors. ranges: (Q, A) ranges [m], NaN = not heard.
         params: zone widths (defaults when None). top_k: candidates per query.
+        batch: queries per jitted call (static).
+        min_capacity: smallest capacity (fewer compilations; gathering a few dozen rows is cheap).
 
     Returns:
         `Candidates` with a leading Q axis.
@@ -415,18 +422,23 @@ def search(
     q = descriptors.shape[0]
     k = db.n_keyframes
     counts = np.asarray(_counts_batch(index, anchors, ranges, params))
-    caps = np.array([min(k, max(_pow2(top_k), _pow2(int(c)))) for c in counts])
+    floor = max(_pow2(top_k), _pow2(min_capacity))
+    caps = np.array([min(k, max(floor, _pow2(int(c)))) for c in counts])
     out_index = np.full((q, top_k), -1, np.int32)
     out_dist = np.full((q, top_k), np.inf, np.asarray(db.descriptor).dtype)
     out_n = np.zeros(q, np.int32)
+    if batch < 1:
+        raise ValueError(f"batch must be >= 1, got {batch}")
     for cap in np.unique(caps):
         sel = np.nonzero(caps == cap)[0]
-        padded = np.concatenate([sel, np.full(_pow2(sel.size) - sel.size, sel[0])])
-        res = _indexed_batch(
-            db, index, anchors, ranges[padded], descriptors[padded], params, top_k, int(cap)
-        )
-        n = sel.size
-        out_index[sel] = np.asarray(res.index)[:n]
-        out_dist[sel] = np.asarray(res.distance)[:n]
-        out_n[sel] = np.asarray(res.n_admissible)[:n]
+        for start in range(0, sel.size, batch):
+            part = sel[start : start + batch]
+            padded = np.concatenate([part, np.full(batch - part.size, part[0])])
+            res = _indexed_batch(
+                db, index, anchors, ranges[padded], descriptors[padded], params, top_k, int(cap)
+            )
+            n = part.size
+            out_index[part] = np.asarray(res.index)[:n]
+            out_dist[part] = np.asarray(res.distance)[:n]
+            out_n[part] = np.asarray(res.n_admissible)[:n]
     return Candidates(index=jnp.asarray(out_index), distance=jnp.asarray(out_dist), n_admissible=jnp.asarray(out_n))
