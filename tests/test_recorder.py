@@ -228,16 +228,18 @@ def _pty():
     return master, slave, os.ttyname(slave)
 
 
-def _writer(master: int, data: bytes, seed: int, delay: float = 0.002, stop: threading.Event | None = None):
+def _writer(master: int, data: bytes, seed: int, delay: float = 0.002, stop: threading.Event | None = None,
+            progress: list | None = None):
     rng = random.Random(seed)
     i = 0
     while i < len(data) and not (stop and stop.is_set()):
         k = rng.randrange(1, 300)
         try:
-            os.write(master, data[i : i + k])
+            i += os.write(master, data[i : i + k])
         except OSError:  # the other end went away
             return
-        i += k
+        if progress is not None:
+            progress.append(i)
         time.sleep(delay)
 
 
@@ -310,12 +312,14 @@ def test_sigkill_leaves_a_readable_file(tmp_path):
         time.sleep(2.5)
         _writer(master, b"".join(first), 6, delay=0.001)
         assert _wait_for(lambda: out.exists() and len(_h5_frames(out)) == len(first))
-        stop = threading.Event()
-        t = threading.Thread(target=_writer, args=(master, b"".join(second), 7, 0.001, stop))
+        stop, progress = threading.Event(), [0]
+        t = threading.Thread(target=_writer, args=(master, b"".join(second), 7, 0.01, stop, progress))
         t.start()
         time.sleep(1.5)
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=10)
+        stop.set()
+        written = len(b"".join(first)) + progress[-1]
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -324,14 +328,17 @@ def test_sigkill_leaves_a_readable_file(tmp_path):
         t.join(timeout=10)
         os.close(master)
     assert proc.returncode == -signal.SIGKILL
+    ends = np.cumsum([len(f) for f in frames])
+    sent = int(np.searchsorted(ends, written, side="right"))  # frames completely written before the kill
+    assert len(first) <= sent < len(frames)  # killed mid-stream
     ds = hdf5.read(out)  # readable, valid contract file
     assert isinstance(ds, MeshDataset)
     in_h5 = _h5_frames(out)
-    assert len(first) <= len(in_h5) <= len(frames) and in_h5 == frames[: len(in_h5)]
+    assert len(first) <= len(in_h5) <= sent and in_h5 == frames[: len(in_h5)]
     header, journal, _torn = read_journal(str(out) + ".journal")
     in_journal = [r for _, r in journal]
-    assert len(in_journal) >= len(in_h5) and in_journal == frames[: len(in_journal)]
-    print(f"\nSIGKILL: sent {len(frames)}, snapshot {len(in_h5)}, journal {len(in_journal)}")
+    assert len(in_h5) <= len(in_journal) <= sent and in_journal == frames[: len(in_journal)]
+    print(f"\nSIGKILL: sent {sent} frames before the kill, snapshot holds {len(in_h5)}, journal {len(in_journal)}")
     p = run_cli("record", "--replay", str(out) + ".journal", "-o", tmp_path / "rebuilt.h5", "--json")
     assert p.returncode == 0, p.stderr
     assert json.loads(p.stdout)["frames"] == len(in_journal)

@@ -47,9 +47,11 @@ from __future__ import annotations
 import json
 import math
 import os
+import queue
 import signal
 import struct
 import sys
+import threading
 import time
 import zlib
 from collections.abc import Callable
@@ -514,6 +516,10 @@ def record_serial(
             " or delete it"
         )
     baud = baud or DEFAULT_BAUD[rec.protocol]
+    import h5py  # noqa: F401 - heavy imports before the port opens, not during the first snapshot
+
+    import jaxcal.io.hdf5  # noqa: F401
+
     try:
         ser = serial.serial_for_url(port, baudrate=baud, timeout=0.05)
     except (serial.SerialException, ValueError, OSError) as e:
@@ -533,6 +539,7 @@ def record_serial(
     last_flush = last_snap = last_status = t0
     snap_cost = 0.0
     dec = rec.decoder
+    reader = None
     try:
         if rec.protocol == "dwm1001-shell" and shell_init:
             ser.write(b"\r\r")
@@ -563,21 +570,29 @@ def record_serial(
                 frames += dec.finish()
                 rec.add(frames, time.monotonic() - t0)
             else:
-                data = ser.read(max(1, ser.in_waiting))
+                if reader is None:
+                    reader = _Reader(ser)
+                try:
+                    data, t_read = reader.queue.get(timeout=0.05)
+                except queue.Empty:
+                    data = b""
+                if reader.error is not None:
+                    raise JaxcalError(f"{port}: read failed ({reader.error})")
                 if data:
                     if rawf:
                         rawf.write(data)
-                    rec.add(dec.feed(data), time.monotonic() - t0)
+                    rec.add(dec.feed(data), t_read - t0)
             now = time.monotonic()
             if now - last_flush >= flush_s:
                 rec.journal.flush()
                 if rawf:
                     rawf.flush()
                 last_flush = now
-                if now - last_snap >= max(flush_s, 10 * snap_cost):
+                # the snapshot is rewritten whole: keep it under ~10 % of the time for big recordings
+                if now - last_snap >= max(flush_s, min(10 * snap_cost, 60.0)):
                     s0 = time.monotonic()
-                    rec.write(out)
-                    snap_cost = time.monotonic() - s0
+                    if rec.write(out):
+                        snap_cost = time.monotonic() - s0
                     last_snap = now
             if status is not None and now - last_status >= 0.5:
                 status(rec.summary(), now - t0, False)
@@ -586,6 +601,13 @@ def record_serial(
         stop["why"] = "interrupt"
     finally:
         signal.signal(signal.SIGTERM, old)
+        if reader is not None:
+            reader.stop()
+            while not reader.queue.empty():
+                data, t_read = reader.queue.get()
+                if rawf:
+                    rawf.write(data)
+                rec.add(dec.feed(data), t_read - t0)
         try:
             ser.close()
         except Exception:  # noqa: BLE001 - closing a vanished port must not hide the recording
@@ -597,6 +619,33 @@ def record_serial(
     if status is not None:
         status(rec.summary(), time.monotonic() - t0, True)
     return stop["why"] or "duration"
+
+
+class _Reader:
+    """Reads the port on a thread, so that bytes keep flowing while a snapshot is written (a serial
+    driver's buffer holds well under a second at 921600 baud). Items: (bytes, host monotonic time)."""
+
+    def __init__(self, ser) -> None:
+        self.ser = ser
+        self.queue: queue.Queue = queue.Queue()
+        self.error: str | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="jaxcal-serial-reader", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set():
+                data = self.ser.read(max(1, self.ser.in_waiting))
+                if data:
+                    self.queue.put((data, time.monotonic()))
+        except Exception as e:  # noqa: BLE001 - reported by the main loop as one line
+            self.error = " ".join(str(e).split()) or type(e).__name__
+            self.queue.put((b"", time.monotonic()))
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=1.0)
 
 
 def finish_journal(rec: Recording, keep: bool) -> None:
