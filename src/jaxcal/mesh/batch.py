@@ -57,7 +57,8 @@ class BatchParams(eqx.Module):
         bias: range offset model: `none`, `network` (one common offset, default), `node` (common offset
             plus one offset per node).
         node_bias_sigma_m: prior standard deviation of the per-node offsets [m] (`bias=node`).
-        summary: `median` (one robust range per pair, default) or `all` (every range of every epoch).
+        summary: `all` (every range of every epoch, default; fitted by IRLS) or `median` (one robust
+            range per pair).
         nlos_weight, nlos_mean_m: mixture share and mean excess length of NLOS ranges.
         outlier_weight, outlier_span_m: mixture share and span [m] of the uniform outlier floor.
         init: `multi` (classical MDS, SMACOF and random SMACOF starts; default), `cmds`, `smacof`.
@@ -67,6 +68,7 @@ class BatchParams(eqx.Module):
         max_steps: iteration limit of the least-squares solver.
         tol: relative and absolute tolerance of the least-squares solver.
         seed: random seed of the random starts.
+        irls_iters: reweighting rounds of the all-epochs refinement (`summary=all`).
         z_up: 3-D only: of the two mirror images (z -> -z), report the one where the nodes other than
             a0, a1, a2 lie mostly above the a0-a1-a2 plane (true) or below it (false).
     """
@@ -76,7 +78,7 @@ class BatchParams(eqx.Module):
     sigma_r: float = 0.2
     bias: str = "network"
     node_bias_sigma_m: float = 0.1
-    summary: str = "median"
+    summary: str = "all"
     nlos_weight: float = 0.2
     nlos_mean_m: float = 1.0
     outlier_weight: float = 0.05
@@ -89,6 +91,7 @@ class BatchParams(eqx.Module):
     tol: float = 1e-9
     seed: int = 0
     z_up: bool = True
+    irls_iters: int = 15
 
     def __check_init__(self):
         for name, allowed in (("loss", LOSSES), ("bias", BIASES), ("summary", SUMMARIES),
@@ -340,6 +343,32 @@ def _fit_starts(y0s: _State, obs: Observations, nb: _Numbers, loss: str, bias: s
 
 
 @eqx.filter_jit
+def _irls_all(y0: _State, obs: Observations, pair_i: Array, pair_j: Array, pair_of_obs: Array,
+              nb: _Numbers, loss: str, bias: str, solver: str, tol: float, max_steps: int,
+              n_iter: int) -> _State:
+    """Minimise the robust cost over every single range by iteratively reweighted least squares.
+
+    With fixed weights w_k the cost of a pair's ranges, sum_k w_k (z_k - m)^2, equals
+    W (zbar - m)^2 + const with W = sum_k w_k and zbar the weighted mean, so each inner
+    least-squares problem has one residual per pair whatever the number of epochs.
+    """
+    n_pairs = pair_i.shape[0]
+
+    def step(state, _):
+        e = _errors(state, obs, bias)
+        w = _irls_weight(loss, e, nb) * obs.w
+        wsum = jax.ops.segment_sum(w, pair_of_obs, n_pairs)
+        zbar = jax.ops.segment_sum(w * obs.z, pair_of_obs, n_pairs) / jnp.maximum(wsum, 1e-300)
+        pairs = Observations(pair_i, pair_j, zbar, wsum)
+        sol = optx.least_squares(_residuals, _solver(solver, tol), state, (pairs, nb, "l2", bias),
+                                 max_steps=max_steps, throw=False)
+        return sol.value, None
+
+    state, _ = jax.lax.scan(step, y0, None, length=n_iter)
+    return state
+
+
+@eqx.filter_jit
 def _covariance(free: Array, template: Array, mask: Array, c: Array, b: Array, obs: Observations,
                 nb: _Numbers, loss: str, bias: str):
     """Covariance of the free position coordinates (plus offsets) in the anchor frame.
@@ -455,9 +484,12 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     obs = obs_med
     if p.summary == "all":
         obs = to_obs(*observations(r, "all"))
-        states2, _ = _fit_starts(jax.tree.map(lambda a: a[None], state), obs, nb, p.loss, p.bias,
-                                 p.solver, p.tol, p.max_steps)
-        state = jax.tree.map(lambda a: a[0], states2)
+        oi, oj = np.asarray(obs.i), np.asarray(obs.j)
+        key_pair = np.minimum(oi, oj) * m + np.maximum(oi, oj)
+        uniq, pair_of_obs = np.unique(key_pair, return_inverse=True)
+        state = _irls_all(state, obs, jnp.asarray(uniq // m), jnp.asarray(uniq % m),
+                          jnp.asarray(pair_of_obs), nb, p.loss, p.bias, p.solver, p.tol, p.max_steps,
+                          p.irls_iters)
 
     x_sub = np.asarray(state.x)
     x_frame_sub = to_frame(x_sub, int(remap[a0]), int(remap[a1]), int(remap[a2]))
