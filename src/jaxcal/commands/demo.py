@@ -74,7 +74,10 @@ def run(args) -> int:
         if unknown:
             raise JaxcalError(f"--methods: not registered: {', '.join(unknown)} (known: {', '.join(sorted(MESH_METHODS))})")
         methods = wanted
-    say = (lambda *a: print(*a, file=sys.stderr)) if args.json else print
+    stream = sys.stderr if args.json else sys.stdout
+
+    def say(*a):
+        print(*a, file=stream, flush=True)  # flushed: the runs take a while, show progress
 
     ds, origin = load_default_dataset()
     groups = ranging_statistics(ds)
@@ -93,6 +96,7 @@ def run(args) -> int:
                 say(f"{method} {conf}: failed ({type(e).__name__}: {' '.join(str(e).split())[:200]})")
                 continue
             seconds = time.perf_counter() - t0
+            say(f"{method} {conf}: {seconds:.1f} s")
             path = out / f"{ds.name}-{method.replace('+', '_')}-{conf}.h5"
             hdf5.write(path, result)
             report = evaluate(result, ds)
@@ -119,7 +123,8 @@ def _json(obj) -> str:
 
 
 def _format_runs(runs: list[dict], node_ids) -> str:
-    """One block per method: per node RMSE [m] and availability [%] for each configuration."""
+    """One block per method: per node RMSE over epochs [m], error of the final position [m] and
+    availability [%] for each configuration."""
 
     def f(v, w=7, p=2):
         return f"{'-':>{w}}" if v is None or v != v else f"{v:{w}.{p}f}"
@@ -132,27 +137,27 @@ def _format_runs(runs: list[dict], node_ids) -> str:
         lines.append(f"== {method} ==")
         head = f"{'node':<10}"
         for conf in DEMO_CONFIGS:
-            head += f"{conf + ' rmse':>13}{'avail':>8}"
+            head += f"{conf + ' rmse':>13}{'final':>8}{'avail':>8}"
         lines.append(head)
         for i, nid in enumerate(node_ids):
             row = f"{nid:<10}"
             for conf in DEMO_CONFIGS:
                 r = confs.get(conf)
                 if r is None or "error" in r:
-                    row += f"{'-':>13}{'-':>8}"
+                    row += f"{'-':>13}{'-':>8}{'-':>8}"
                 else:
                     n = r["nodes"][i]
-                    row += f"{f(n['rmse_m'], 13)}{f(100 * n['availability'], 7, 1)}%"
+                    row += f"{f(n['rmse_m'], 13)}{f(n['final_error_m'], 8)}{f(100 * n['availability'], 7, 1)}%"
             lines.append(row)
         tot = f"{'all':<10}"
         tim = f"{'time [s]':<10}"
         for conf in DEMO_CONFIGS:
             r = confs.get(conf)
             if r is None or "error" in r:
-                tot += f"{'failed':>21}"
-                tim += f"{'-':>21}"
+                tot += f"{'failed':>29}"
+                tim += f"{'-':>29}"
             else:
-                tot += f"{f(r['rmse_m'], 13)}{'':>8}"
-                tim += f"{f(r['seconds'], 13)}{'':>8}"
+                tot += f"{f(r['rmse_m'], 13)}{f(r['final_rmse_m'], 8)}{'':>8}"
+                tim += f"{f(r['seconds'], 13)}{'':>16}"
         lines += [tot, tim, ""]
     return "\n".join(lines)
