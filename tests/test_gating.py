@@ -210,3 +210,16 @@ def test_cli_bad_input_one_line(tmp_path):
     assert_one_line_error(run_cli("gate", bad, bad, "--anchors", bad), "x.h5")
     assert_one_line_error(run_cli("gate", bad), "need DB.h5")
     assert_one_line_error(run_cli("gate", "--simulate", tmp_path, "--set", "delta_m=-1"), "delta_m")
+
+
+def test_one_shot_search_equals_batched(rng):
+    pos, desc, anchors, cov, ranges, qdesc = _scene(rng, k=160, q=12)
+    db, an = KeyframeDB.build(pos, desc), Anchors.from_estimate(anchors, cov)
+    ix, p = ZoneIndex.build(db, an), GateParams(delta_m=2.0)
+    batched = gating.search(db, ix, an, qdesc, ranges, p, top_k=3, min_capacity=16)
+    for i in range(len(qdesc)):
+        one = gating.search_one(db, ix, an, jnp.asarray(ranges[i]), jnp.asarray(qdesc[i]), p, 3, 16)
+        assert np.array_equal(one.index, batched.index[i])
+        assert int(one.n_admissible) == int(batched.n_admissible[i])
+    full = gating.search_one_full(db, jnp.asarray(qdesc[0]), 3)
+    assert np.array_equal(full.index, gating.search_full(db, qdesc[:1], 3).index[0])

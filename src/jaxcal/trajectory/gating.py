@@ -48,6 +48,8 @@ __all__ = [
     "zone_counts",
     "search",
     "search_full",
+    "search_one",
+    "search_one_full",
 ]
 
 METRICS = ("cosine", "l2")
@@ -358,6 +360,55 @@ def _indexed_batch(db, index, anchors, ranges, descriptors, params, top_k, capac
     )
 
 
+def _ladder(k: int, floor: int) -> list[int]:
+    caps, c = [], floor
+    while c < k:
+        caps.append(c)
+        c *= 2
+    return caps + [k]
+
+
+@eqx.filter_jit
+def search_one(
+    db: KeyframeDB,
+    index: ZoneIndex,
+    anchors: Anchors,
+    range_m: Float[Array, " A"],
+    descriptor: Float[Array, " F"],
+    params: GateParams,
+    top_k: int = 5,
+    min_capacity: int = 64,
+) -> Candidates:
+    """One-shot gated search of a single query in one jitted call (no host round trip).
+
+    The capacity is chosen on the device: `lax.switch` over the ladder min_capacity, 2 min_capacity,
+    ..., K runs only the branch whose capacity covers the pivot zone, so the work follows the zone
+    size. Exact; equals `rank_masked`. (Under `vmap` a switch runs every branch: batch with `search`.)
+
+    Args:
+        db, index, anchors: database, its zone index, the anchors (A).
+        range_m: (A,) ranges [m], NaN = not heard. descriptor: (F,) query descriptor.
+        params: zone widths. top_k, min_capacity: static ints (top_k <= K).
+
+    Returns:
+        `Candidates` of the query.
+    """
+    k = index.order.shape[1]
+    caps = _ladder(k, max(_pow2(top_k), _pow2(min_capacity)))
+    need = zone_counts(index, anchors, range_m, params)
+    branch = jnp.searchsorted(jnp.asarray(caps), need, side="left")
+    fns = [
+        (lambda c: lambda r, q: rank_indexed(db, index, anchors, r, q, params, top_k, c))(c) for c in caps
+    ]
+    return jax.lax.switch(jnp.minimum(branch, len(caps) - 1), fns, range_m, descriptor)
+
+
+@eqx.filter_jit
+def search_one_full(db: KeyframeDB, descriptor: Float[Array, " F"], top_k: int = 5) -> Candidates:
+    """One-shot ungated search of a single (F,) query descriptor in one jitted call."""
+    return rank_full(db, descriptor, top_k)
+
+
 def _pow2(n: int) -> int:
     return 1 << max(0, int(n - 1).bit_length())
 
@@ -416,8 +467,8 @@ def search(
         `Candidates` with a leading Q axis.
     """
     params = GateParams() if params is None else params
-    descriptors = jnp.asarray(descriptors)
-    ranges = jnp.asarray(ranges, dtype=anchors.position.dtype)
+    descriptors = np.asarray(descriptors)
+    ranges = np.asarray(ranges, dtype=np.asarray(anchors.position).dtype)
     _check_batch(db, anchors, descriptors, ranges, top_k)
     q = descriptors.shape[0]
     k = db.n_keyframes
@@ -429,6 +480,7 @@ def search(
     out_n = np.zeros(q, np.int32)
     if batch < 1:
         raise ValueError(f"batch must be >= 1, got {batch}")
+    pending = []  # dispatch every chunk before reading any back (JAX runs them asynchronously)
     for cap in np.unique(caps):
         sel = np.nonzero(caps == cap)[0]
         for start in range(0, sel.size, batch):
@@ -437,8 +489,10 @@ def search(
             res = _indexed_batch(
                 db, index, anchors, ranges[padded], descriptors[padded], params, top_k, int(cap)
             )
-            n = part.size
-            out_index[part] = np.asarray(res.index)[:n]
-            out_dist[part] = np.asarray(res.distance)[:n]
-            out_n[part] = np.asarray(res.n_admissible)[:n]
+            pending.append((part, res))
+    for part, res in pending:
+        n = part.size
+        out_index[part] = np.asarray(res.index)[:n]
+        out_dist[part] = np.asarray(res.distance)[:n]
+        out_n[part] = np.asarray(res.n_admissible)[:n]
     return Candidates(index=jnp.asarray(out_index), distance=jnp.asarray(out_dist), n_admissible=jnp.asarray(out_n))
