@@ -40,6 +40,9 @@ __all__ = [
     "predict",
     "pair_loglik",
     "node_loglik",
+    "node_loglik_sparse",
+    "predict_direct",
+    "predict_static",
     "window_estimate",
     "mean_cov",
 ]
@@ -129,6 +132,11 @@ def safe_norm(v: Float[Array, "... 2"]) -> Float[Array, "..."]:
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, d2, 1.0)), 0.0)
 
 
+def _safe_sqrt(d2):
+    pos = d2 > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, d2, 1.0)), 0.0)
+
+
 def top_hypotheses(
     logp: Float[Array, " cells"], cells: Float[Array, "cells 2"], n_hyp: int, tau: Float[Array, ""]
 ) -> tuple[Float[Array, "hyp 2"], Float[Array, " hyp"]]:
@@ -164,7 +172,9 @@ def predict(
     """Motion update of one node, eq. (7)-(8), over its `top_k` most probable cells (log space).
 
     `log pbar(g_i) = logsumexp_{m in K} [log p_m - (|g_i - g_m| - v dt)^2 / (2 sigma_v^2)]`; the
-    Gaussian's constant is dropped (it cancels in the normalisation of eq. 12).
+    Gaussian's constant is dropped (it cancels in the normalisation of eq. 12). For `v dt = 0` the
+    kernel is separable in x and y and the sum is one small matrix product (`predict_static`), else it
+    is evaluated directly (`predict_direct`).
 
     Args:
         logp: (C,) log posterior of the previous epoch. cells: (C, 2) [m].
@@ -173,10 +183,42 @@ def predict(
     Returns:
         (C,) unnormalised log prior.
     """
+    return jax.lax.cond(
+        step_m == 0,
+        lambda: predict_static(logp, cells, top_k, sigma_v),
+        lambda: predict_direct(logp, cells, top_k, step_m, sigma_v),
+    )
+
+
+def predict_direct(logp, cells, top_k: int, step_m, sigma_v):
+    """Eq. (7)-(8) evaluated directly: (C, K) transition terms, any `v dt`."""
     vals, idx = jax.lax.top_k(logp, top_k)
-    d = safe_norm(cells[:, None, :] - cells[idx][None, :, :])
+    src = cells[idx]
+    d = safe_norm(jnp.stack([cells[None, :, 0] - src[:, 0, None], cells[None, :, 1] - src[:, 1, None]], axis=-1))
     logt = -0.5 * jnp.square((d - step_m) / sigma_v)
-    return jax.nn.logsumexp(vals[None, :] + logt, axis=1)
+    return jax.nn.logsumexp(vals[:, None] + logt, axis=0)
+
+
+def predict_static(logp, cells, top_k: int, sigma_v):
+    """Eq. (7)-(8) for `v dt = 0`: `exp(-|d|^2 / 2s^2) = exp(-dx^2 / 2s^2) exp(-dy^2 / 2s^2)`, so the sum over
+    the K sources is `Ex diag(p) Ey^T`, with each row and column shifted by its largest log term so the
+    product stays in range. Where even that underflows (cells whose prior is below ~1e-30 of the
+    bound), the bound times the smallest normal number is used: finite, and negligible."""
+    n = int(round(math.sqrt(cells.shape[0])))
+    vals, idx = jax.lax.top_k(logp, top_k)
+    src = cells[idx]
+    ax = cells[::n, 0]  # x of row ix (cells are ix-major)
+    ay = cells[:n, 1]
+    bx = -0.5 * jnp.square((ax[:, None] - src[None, :, 0]) / sigma_v)  # (nx, K)
+    by = -0.5 * jnp.square((ay[:, None] - src[None, :, 1]) / sigma_v)  # (ny, K)
+    vmax = jnp.max(vals)
+    w = jnp.where(jnp.isfinite(vals), jnp.exp(vals - vmax), 0.0)
+    mx = jnp.max(bx, axis=1)
+    my = jnp.max(by, axis=1)
+    s = (jnp.exp(bx - mx[:, None]) * w[None, :]) @ jnp.exp(by - my[:, None]).T  # (nx, ny)
+    tiny = jnp.finfo(s.dtype).tiny
+    out = jnp.log(jnp.maximum(s, tiny)) + vmax + mx[:, None] + my[None, :]
+    return out.reshape(-1)
 
 
 def pair_loglik(
@@ -199,8 +241,11 @@ def pair_loglik(
     Returns:
         (C,) log likelihood.
     """
-    d = safe_norm(cells[:, None, :] - hyp_pos[None, :, :])
-    ll = jax.nn.logsumexp(hyp_logw[None, :] - 0.5 * jnp.square((d - z) / sigma), axis=1)
+    # (H, C) layout: the reductions run over the short hypothesis axis with cells contiguous.
+    dx = cells[None, :, 0] - hyp_pos[:, 0, None]
+    dy = cells[None, :, 1] - hyp_pos[:, 1, None]
+    d = _safe_sqrt(dx * dx + dy * dy)
+    ll = jax.nn.logsumexp(hyp_logw[:, None] - 0.5 * jnp.square((d - z) * (1.0 / sigma)), axis=0)
     return jnp.logaddexp(jnp.log1p(-p_out) + ll, jnp.log(p_out))
 
 
@@ -215,6 +260,8 @@ def node_loglik(
 ) -> Float[Array, " cells"]:
     """Log likelihood eq. (11) of one node over the grid: the sum over neighbours j with `use_i[j]`.
 
+    Dense form: every (neighbour, hypothesis) pair is evaluated (`vmap`) and unused ones are masked.
+
     Args:
         cells: (C, 2) [m]. hyp_pos, hyp_logw: (N, H, 2), (N, H) hypotheses of every node.
         hyp_sigma: (N,) range std to use with each neighbour [m]. z_i: (N,) ranges to the neighbours [m]
@@ -226,6 +273,29 @@ def node_loglik(
     zs = jnp.where(use_i, z_i, 0.0)
     per = jax.vmap(pair_loglik, in_axes=(None, 0, 0, 0, 0, None))(cells, hyp_pos, hyp_logw, zs, hyp_sigma, p_out)
     return jnp.sum(jnp.where(use_i[:, None], per, 0.0), axis=0)
+
+
+def node_loglik_sparse(
+    cells: Float[Array, "cells 2"],
+    hyp_pos: Float[Array, "nodes hyp 2"],
+    hyp_logw: Float[Array, "nodes hyp"],
+    hyp_sigma: Float[Array, " nodes"],
+    z_i: Float[Array, " nodes"],
+    use_i: Bool[Array, " nodes"],
+    p_out: Float[Array, ""],
+) -> Float[Array, " cells"]:
+    """`node_loglik` with the same arguments and result, skipping the work of neighbours without a range
+    (`lax.cond` in a loop over neighbours: cost ~ used pairs x hypotheses x cells). Must not be
+    `vmap`ped (a batched `cond` evaluates both branches); map it over nodes with `lax.map`."""
+    n = hyp_logw.shape[0]
+
+    def neighbour(j, acc):
+        def add(acc):
+            return acc + pair_loglik(cells, hyp_pos[j], hyp_logw[j], z_i[j], hyp_sigma[j], p_out)
+
+        return jax.lax.cond(use_i[j], add, lambda a: a, acc)
+
+    return jax.lax.fori_loop(0, n, neighbour, jnp.zeros(cells.shape[:1], cells.dtype))
 
 
 def window_estimate(

@@ -69,6 +69,8 @@ class PGPParams(eqx.Module):
         min_refs: localised neighbours a node must have heard before it counts as localised.
         a2_all: let a2 use every localised node, not only a0 and a1 (eq. 6 uses a0 and a1).
         p_out: robust floor of each likelihood factor (0: the paper's eq. 11).
+        likelihood: "sparse" (skip neighbours without a range and hypotheses outside `tau`; loops) or
+            "dense" (evaluate every pair and hypothesis, vmapped, then mask): same answer.
     """
 
     cell_m: float = 0.5
@@ -88,6 +90,7 @@ class PGPParams(eqx.Module):
     min_refs: int = 3
     a2_all: bool = False
     p_out: float = 0.0
+    likelihood: str = "sparse"
 
 
 def _validate(p: PGPParams) -> None:
@@ -106,6 +109,7 @@ def _validate(p: PGPParams) -> None:
     for k in ("top_k", "max_hyp", "median_window", "min_refs"):
         need(getattr(p, k) >= 1, f"{k}: must be an integer >= 1, got {getattr(p, k)!r}")
     need(p.smoothing in ("none", "ema", "median-ema"), f"smoothing: one of none, ema, median-ema; got {p.smoothing!r}")
+    need(p.likelihood in ("sparse", "dense"), f"likelihood: sparse or dense; got {p.likelihood!r}")
     need(p.update_order in ("jacobi", "gauss-seidel"), f"update_order: jacobi or gauss-seidel; got {p.update_order!r}")
     if p.extent_m / p.cell_m > 2000:
         raise JaxcalError(f"parameter cell_m: grid of {2 * p.extent_m / p.cell_m:.0f} cells a side is too large")
@@ -122,6 +126,7 @@ class FilterConfig(eqx.Module):
     median_window: int = eqx.field(static=True)
     mode: str = eqx.field(static=True)  # "pgp" (hypotheses, eq. 10-11) or "parametric" (eq. 9)
     n_snap: int = eqx.field(static=True)
+    likelihood: str = eqx.field(static=True, default="sparse")
 
 
 class FilterParams(eqx.Module):
@@ -221,7 +226,8 @@ def _node_update(cfg, prm, cells, logp_i, mask_i, loc_i, hyps, z_i, use_i, step_
     prior = jax.lax.cond(
         loc_i, lambda lp: G.predict(lp, cells, cfg.top_k, step_m, prm.sigma_v), lambda lp: lp, logp_i
     )
-    ll = G.node_loglik(cells, hyps[0], hyps[1], hyps[2], z_i, use_i, prm.p_out)
+    lik = G.node_loglik_sparse if cfg.likelihood == "sparse" else G.node_loglik
+    ll = lik(cells, hyps[0], hyps[1], hyps[2], z_i, use_i, prm.p_out)
     post = jnp.where(mask_i, prior + ll, -jnp.inf)
     return post - jax.nn.logsumexp(post)
 
@@ -249,7 +255,11 @@ def _filter(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, logpost0: F
     c = cells.shape[0]
     mask = inp.mask.reshape(n, c)
     nan2 = jnp.full((n, 2), jnp.nan, logpost0.dtype)
-    upd = jax.vmap(_node_update, in_axes=(None, None, None, 0, 0, 0, None, 0, 0, None))
+    def upd(lp, loc, hyps, z, use, step_m):
+        args = (lp, mask, loc, z, use)
+        if cfg.likelihood == "sparse":  # lax.map: a vmapped cond would evaluate the skipped work too
+            return jax.lax.map(lambda a: _node_update(cfg, prm, cells, a[0], a[1], a[2], hyps, a[3], a[4], step_m), args)
+        return jax.vmap(lambda *a: _node_update(cfg, prm, cells, a[0], a[1], a[2], hyps, a[3], a[4], step_m))(*args)
 
     def epoch(st: FilterState, x):
         z, dt, k = x
@@ -260,7 +270,7 @@ def _filter(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, logpost0: F
             loc = _localised(heard, inp.need)
             use = inp.allowed & jnp.isfinite(z) & loc[None, :]
             hyps = _hypotheses(cfg, prm, lp, cells)
-            lp = upd(cfg, prm, cells, lp, mask, loc, hyps, z, use, step_m)
+            lp = upd(lp, loc, hyps, z, use, step_m)
             heard = heard | use
         else:
             hyps = _hypotheses(cfg, prm, lp, cells)
@@ -350,6 +360,7 @@ def prepare(
         median_window=params.median_window,
         mode=mode,
         n_snap=int(snaps.size),
+        likelihood=params.likelihood,
     )
     prm = FilterParams(*(jnp.asarray(getattr(params, f), ftype) for f in ("tau", "r_est", "sigma_r", "v", "sigma_v", "alpha", "p_out")))
     inp = FilterInputs(
