@@ -99,7 +99,7 @@ SCENARIOS: dict[str, MeshScenario] = {
         name="small",
         hall=(20.0, 15.0),
         node_ids=("N0", "N1", "N2", "N3", "N4", "N5"),
-        walls=(((10.0, 0.0), (10.0, 7.0)),),
+        walls=(((10.0, 0.0), (10.0, 11.0)),),
         n_epochs=200,
         configs=(("conf1", (0, 1, 2)),),
     ),
