@@ -17,7 +17,9 @@ def _trajectory_simulator():
 
     try:
         from jaxcal.sim.trajectory import SCENARIOS, simulate
-    except ImportError:
+    except ModuleNotFoundError as e:
+        if e.name != "jaxcal.sim.trajectory":
+            raise
         raise JaxcalError("trajectory simulation is not available yet (jaxcal.sim.trajectory missing)") from None
     return simulate, SCENARIOS
 

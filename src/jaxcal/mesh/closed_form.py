@@ -7,8 +7,9 @@ Per epoch k, with z_ij the measured distance (the mean of i->j and j->i when bot
    z_02 / z_12 or a negative radicand leaves a2 (and hence every later node) empty.
 2. Placement rule for every other node, in rounds: in each round, every node not yet placed whose
    *references* (nodes placed in an earlier round with a measured distance to it) number at least
-   `min_refs` (>= 3) and are well spread (the smaller principal standard deviation of the reference
-   positions is at least `min_spread_m`, i.e. they are not nearly collinear) is placed by linear least
+   `min_refs` (>= 3) and are well spread (the ratio of the smaller to the larger principal standard
+   deviation of the reference positions is at least `min_spread_ratio`, i.e. they are not nearly
+   collinear; a ratio, so the rule is the same in a 5 m room and a 50 m hall) is placed by linear least
    squares over all its references: subtracting the mean of the circle equations |x - p_j|^2 = z_j^2
    gives 2 (p_j - p_mean) . (x - p_mean) = |p_j - p_mean|^2 - z_j^2 - mean(...), solved by the 2 x 2
    normal equations. Rounds repeat until no node is added (at most N - 3 rounds). With
@@ -46,13 +47,14 @@ class ClosedFormParams(eqx.Module):
 
     Attributes:
         min_refs: least number of placed references a node needs (>= 3: two give a mirror ambiguity).
-        min_spread_m: least spread [m] of the references across their main axis (smaller principal
-            standard deviation of their positions); guards against near-collinear references.
+        min_spread_ratio: least ratio of the smaller to the larger principal standard deviation of
+            the reference positions (0: any non-collinear set; 1: only isotropic sets); guards against
+            near-collinear references, which amplify ranging errors along the thin axis.
         anchors_only: use only a0, a1, a2 as references (the paper's stricter dependency on a1).
     """
 
     min_refs: int = 3
-    min_spread_m: float = 1.0
+    min_spread_ratio: float = 0.1
     anchors_only: bool = False
 
 
@@ -70,7 +72,7 @@ def _place_one_epoch(
     d: Float[Array, "n n"],
     anchors: Int[Array, "3"],
     min_refs: Float[Array, ""],
-    min_spread: Float[Array, ""],
+    min_ratio: Float[Array, ""],
     anchors_only: Bool[Array, ""],
 ) -> Float[Array, "n 2"]:
     n = d.shape[0]
@@ -111,12 +113,13 @@ def _place_one_epoch(
         a = 2.0 * q
         mat = jnp.einsum("ij,ijk,ijl->ikl", wf, a, a)
         vec = jnp.einsum("ij,ijk,ij->ik", wf, a, b)
-        # spread: smaller eigenvalue of the references' covariance (mat / 4m)
+        # spread: principal variances of the references (eigenvalues of their covariance, mat / 4m)
         cov = mat / (4.0 * ms[:, None, None])
         tr2 = 0.5 * (cov[:, 0, 0] + cov[:, 1, 1])
         det = cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] ** 2
-        lam_min = tr2 - jnp.sqrt(jnp.maximum(tr2**2 - det, 0.0))
-        good = (~placed) & (m >= min_refs) & (lam_min >= min_spread**2) & (lam_min > 0)
+        root = jnp.sqrt(jnp.maximum(tr2**2 - det, 0.0))
+        lam_min, lam_max = tr2 - root, tr2 + root
+        good = (~placed) & (m >= min_refs) & (lam_min >= min_ratio**2 * lam_max) & (lam_min > 0)
         detm = jnp.where(good, mat[:, 0, 0] * mat[:, 1, 1] - mat[:, 0, 1] ** 2, 1.0)
         y0 = (mat[:, 1, 1] * vec[:, 0] - mat[:, 0, 1] * vec[:, 1]) / detm
         y1 = (mat[:, 0, 0] * vec[:, 1] - mat[:, 1, 0] * vec[:, 0]) / detm
@@ -127,9 +130,9 @@ def _place_one_epoch(
 
 
 @jax.jit
-def _place_all(d, anchors, min_refs, min_spread, anchors_only):
+def _place_all(d, anchors, min_refs, min_ratio, anchors_only):
     return jax.vmap(_place_one_epoch, in_axes=(0, None, None, None, None))(
-        d, anchors, min_refs, min_spread, anchors_only
+        d, anchors, min_refs, min_ratio, anchors_only
     )
 
 
@@ -149,8 +152,8 @@ def place_epochs(
     p = ClosedFormParams() if params is None else params
     if int(p.min_refs) < 3:
         raise JaxcalError(f"parameter min_refs: must be at least 3, got {p.min_refs}")
-    if not float(p.min_spread_m) >= 0:
-        raise JaxcalError(f"parameter min_spread_m: must be non-negative, got {p.min_spread_m}")
+    if not 0.0 <= float(p.min_spread_ratio) <= 1.0:
+        raise JaxcalError(f"parameter min_spread_ratio: must lie in [0, 1], got {p.min_spread_ratio}")
     d = jnp.asarray(distances)
     if d.shape[0] == 0:
         return np.zeros((0, d.shape[1], 2))
@@ -158,7 +161,7 @@ def place_epochs(
         d,
         jnp.asarray(anchors, dtype=jnp.int32),
         jnp.asarray(float(p.min_refs), d.dtype),
-        jnp.asarray(float(p.min_spread_m), d.dtype),
+        jnp.asarray(float(p.min_spread_ratio), d.dtype),
         jnp.asarray(bool(p.anchors_only)),
     )
     return np.asarray(out, dtype=np.float64)
