@@ -46,7 +46,9 @@ def _reference_epoch(d, anchors, min_refs=3, min_ratio=0.1, anchors_only=False):
         for i in range(n):
             if i in before:
                 continue
-            refs = [j for j in before if np.isfinite(d[i, j]) and (not anchors_only or j in anchors)]
+            refs = [
+                j for j in before if np.isfinite(d[i, j]) and (not anchors_only or j in anchors)
+            ]
             if len(refs) < min_refs:
                 continue
             p = np.array([before[j] for j in refs])
@@ -98,11 +100,20 @@ def test_fast_path_equals_slow_reference_on_noisy_data():
     truth = rng.uniform(0, 30, (9, 2))
     d = _distances(truth, 40, rng, drop=0.35, noise=0.5)
     anchors = (2, 5, 0)
-    for params in (cf.ClosedFormParams(), cf.ClosedFormParams(anchors_only=True),
-                   cf.ClosedFormParams(min_refs=4, min_spread_ratio=0.4)):
+    for params in (
+        cf.ClosedFormParams(),
+        cf.ClosedFormParams(anchors_only=True),
+        cf.ClosedFormParams(min_refs=4, min_spread_ratio=0.4),
+    ):
         fast = cf.place_epochs(d, anchors, params)
-        slow = np.stack([_reference_epoch(d[k], anchors, params.min_refs, params.min_spread_ratio,
-                                          params.anchors_only) for k in range(d.shape[0])])
+        slow = np.stack(
+            [
+                _reference_epoch(
+                    d[k], anchors, params.min_refs, params.min_spread_ratio, params.anchors_only
+                )
+                for k in range(d.shape[0])
+            ]
+        )
         np.testing.assert_array_equal(np.isnan(fast), np.isnan(slow))
         np.testing.assert_allclose(fast, slow, atol=1e-9, equal_nan=True)
         assert np.isfinite(fast).any() and np.isnan(fast).any()  # both branches exercised
@@ -120,13 +131,21 @@ def test_missing_range_to_a1_loses_availability_exactly_where_needed():
     d[:, x, 1] = d[:, 1, x] = np.nan  # x - a1 never measured
     link = rng.random(k) < 0.6
     d[~link, x, y] = d[~link, y, x] = np.nan
-    ds = MeshDataset(name="d5b4", node_ids=list("abcxy"[:3]) + ["y", "x"], time=np.arange(k) * 0.1,
-                     range=d, truth=truth, configs={"c": (0, 1, 2)})
+    ds = MeshDataset(
+        name="d5b4",
+        node_ids=list("abcxy"[:3]) + ["y", "x"],
+        time=np.arange(k) * 0.1,
+        range=d,
+        truth=truth,
+        configs={"c": (0, 1, 2)},
+    )
     res = cf.calibrate(ds, config="c")
     has = np.isfinite(res.track_position).all(axis=2)
     np.testing.assert_array_equal(has[:, x], link)
     assert has[:, y].all()
-    assert res.track_position[link, x] == pytest.approx(np.repeat(to_frame(truth, 0, 1, 2)[x][None], link.sum(), 0), abs=1e-4)
+    assert res.track_position[link, x] == pytest.approx(
+        np.repeat(to_frame(truth, 0, 1, 2)[x][None], link.sum(), 0), abs=1e-4
+    )
     strict = cf.calibrate(ds, params={"anchors_only": True}, config="c")
     assert not np.isfinite(strict.track_position[:, x]).any()
     assert np.isnan(strict.position[x]).all()
@@ -150,8 +169,14 @@ def test_calibrate_result_median_frame_and_registry():
     rng = np.random.default_rng(1)
     truth = rng.uniform(0, 20, (6, 2))
     d = _distances(truth, 31, rng, noise=0.2)
-    ds = MeshDataset(name="m", node_ids=[f"n{i}" for i in range(6)], time=np.arange(31) * 0.1, range=d,
-                     truth=truth, configs={"c1": (3, 1, 4)})
+    ds = MeshDataset(
+        name="m",
+        node_ids=[f"n{i}" for i in range(6)],
+        time=np.arange(31) * 0.1,
+        range=d,
+        truth=truth,
+        configs={"c1": (3, 1, 4)},
+    )
     res = calibrate_registered(ds, "cf", params={"min_spread_ratio": "0.05"}, config="c1")
     assert res.frame == "anchors:3,1,4" and res.method == "cf"
     assert res.track_position.shape == (31, 6, 2)
@@ -171,7 +196,9 @@ def test_parameters_do_not_recompile():
     d = _distances(truth, 3)
     cf.place_epochs(d, (0, 1, 2))
     before = cf._place_all._cache_size()
-    cf.place_epochs(d, (1, 2, 3), cf.ClosedFormParams(min_refs=4, min_spread_ratio=0.3, anchors_only=True))
+    cf.place_epochs(
+        d, (1, 2, 3), cf.ClosedFormParams(min_refs=4, min_spread_ratio=0.3, anchors_only=True)
+    )
     assert cf._place_all._cache_size() == before
 
 

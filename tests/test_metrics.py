@@ -30,8 +30,15 @@ def test_error_statistics_known_answers():
 def _mesh(range_, truth, los=None, **kw):
     k = range_.shape[0]
     n = truth.shape[0]
-    return MeshDataset(name="m", node_ids=[f"n{i}" for i in range(n)], time=np.arange(k, dtype=float),
-                       range=range_, truth=truth, los=los, **kw)
+    return MeshDataset(
+        name="m",
+        node_ids=[f"n{i}" for i in range(n)],
+        time=np.arange(k, dtype=float),
+        range=range_,
+        truth=truth,
+        los=los,
+        **kw,
+    )
 
 
 def test_ranging_statistics_groups_against_numpy():
@@ -101,13 +108,21 @@ def test_pairwise_rmse_and_qq_against_loops():
 
 def _result(pos, track=None, frame="anchors:0,1,2", ids=None):
     n = pos.shape[0]
-    return Result(ids=ids or [f"n{i}" for i in range(n)], position=pos, method="x", dataset="m", frame=frame,
-                  track_time=None if track is None else np.arange(track.shape[0], dtype=float),
-                  track_position=track)
+    return Result(
+        ids=ids or [f"n{i}" for i in range(n)],
+        position=pos,
+        method="x",
+        dataset="m",
+        frame=frame,
+        track_time=None if track is None else np.arange(track.shape[0], dtype=float),
+        track_position=track,
+    )
 
 
 def _scene():
-    truth = np.array([[2.0, 1.0, 1.6], [12.0, 3.0, 1.6], [5.0, 9.0, 1.6], [14.0, 11.0, 1.6], [8.0, 4.0, 1.6]])
+    truth = np.array(
+        [[2.0, 1.0, 1.6], [12.0, 3.0, 1.6], [5.0, 9.0, 1.6], [14.0, 11.0, 1.6], [8.0, 4.0, 1.6]]
+    )
     return truth
 
 
@@ -156,7 +171,7 @@ def test_evaluation_invariant_under_rigid_motion_of_truth(reflect):
         ev = metrics.evaluate(res, _mesh(np.full((1, 5, 5), np.nan), truth2))
         for key in ("rmse_m", "final_rmse_m", "aligned_rmse_m"):
             assert ev[key] == pytest.approx(base[key], abs=1e-9)
-        for a, b in zip(ev["nodes"], base["nodes"]):
+        for a, b in zip(ev["nodes"], base["nodes"], strict=True):
             assert a["rmse_m"] == pytest.approx(b["rmse_m"], abs=1e-9)
     assert base["aligned_rmse_m"] <= base["final_rmse_m"] + 1e-12
 
@@ -181,24 +196,47 @@ def test_evaluate_errors_are_one_line():
 
 def test_evaluate_trajectory_per_anchor():
     at = np.array([[0.0, 0, 0], [10, 0, 2], [0, 10, 1]])
-    ds = TrajectoryDataset(name="tr", anchor_ids=["A", "B", "C"], tag_ids=["T"], lever_arm=np.zeros((1, 3)),
-                           pose_time=np.arange(3.0), pose_position=np.zeros((3, 3)), range_time=[0.5],
-                           range_anchor=[0], range_tag=[0], range=[1.0], anchor_truth=at)
+    ds = TrajectoryDataset(
+        name="tr",
+        anchor_ids=["A", "B", "C"],
+        tag_ids=["T"],
+        lever_arm=np.zeros((1, 3)),
+        pose_time=np.arange(3.0),
+        pose_position=np.zeros((3, 3)),
+        range_time=[0.5],
+        range_anchor=[0],
+        range_tag=[0],
+        range=[1.0],
+        anchor_truth=at,
+    )
     est = at[[2, 0, 1]] + np.array([[0, 0, 0.5], [3, 4, 0], [np.nan] * 3])
     res = Result(ids=["C", "A", "B"], position=est, method="gp", dataset="tr", frame="world")
     ev = metrics.evaluate(res, ds)
     errs = {a["id"]: a["error_m"] for a in ev["anchors"]}
-    assert errs["C"] == pytest.approx(0.5) and errs["A"] == pytest.approx(5.0) and np.isnan(errs["B"])
+    assert (
+        errs["C"] == pytest.approx(0.5) and errs["A"] == pytest.approx(5.0) and np.isnan(errs["B"])
+    )
     assert ev["mean_error_m"] == pytest.approx(2.75)
 
 
 def test_trajectory_ranging_errors_with_lever_arm_and_rotation():
     # body rotated 90 degrees about z: lever (1, 0, 0) points along world y
     q = np.array([0.0, 0.0, np.sin(np.pi / 4), np.cos(np.pi / 4)])
-    ds = TrajectoryDataset(name="tr", anchor_ids=["A"], tag_ids=["T"], lever_arm=[[1.0, 0, 0]],
-                           pose_time=[0.0, 2.0], pose_position=[[0.0, 0, 0], [2.0, 0, 0]],
-                           pose_orientation=[q, q], range_time=[1.0], range_anchor=[0], range_tag=[0],
-                           range=[5.5], range_los=[1], anchor_truth=[[1.0, 5.0, 0.0]])
+    ds = TrajectoryDataset(
+        name="tr",
+        anchor_ids=["A"],
+        tag_ids=["T"],
+        lever_arm=[[1.0, 0, 0]],
+        pose_time=[0.0, 2.0],
+        pose_position=[[0.0, 0, 0], [2.0, 0, 0]],
+        pose_orientation=[q, q],
+        range_time=[1.0],
+        range_anchor=[0],
+        range_tag=[0],
+        range=[5.5],
+        range_los=[1],
+        anchor_truth=[[1.0, 5.0, 0.0]],
+    )
     err, los = metrics.ranging_errors(ds)
     assert err == pytest.approx([1.5])  # tag at (1, 1, 0), anchor 4 m away
     assert list(los) == [1]

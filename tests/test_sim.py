@@ -6,8 +6,8 @@ import json
 
 import numpy as np
 import pytest
-from conftest import assert_one_line_error, run_cli
 
+from conftest import assert_one_line_error, run_cli
 from jaxcal import metrics
 from jaxcal.errors import JaxcalError
 from jaxcal.io import hdf5
@@ -99,7 +99,9 @@ def test_channel_model_classes_and_determinism():
     assert gross.min() >= m.outlier_min and gross.max() <= m.outlier_max
     assert gross.size / e3.size == pytest.approx(m.nlos_outlier_prob, rel=0.1)
     zero = ChannelModel(los_sigma=0.0, los_tail_prob=0.0, los_outlier_prob=0.0)
-    np.testing.assert_array_equal(sample_range_errors(np.random.default_rng(0), np.ones(5, bool), zero), 0.2)
+    np.testing.assert_array_equal(
+        sample_range_errors(np.random.default_rng(0), np.ones(5, bool), zero), 0.2
+    )
 
 
 def test_cli_simulate_stats_calibrate_evaluate(tmp_path):
@@ -116,10 +118,23 @@ def test_cli_simulate_stats_calibrate_evaluate(tmp_path):
     got = json.loads(p.stdout)["groups"]
     want = metrics.ranging_statistics(ds)
     for g in ("los", "nlos", "all"):
-        assert set(got[g]) == {"share", "count", "mean_m", "median_m", "variance_m2", "q1sigma_m", "q2sigma_m",
-                               "q3sigma_m", "p25_m", "p50_m", "p75_m"}
+        assert set(got[g]) == {
+            "share",
+            "count",
+            "mean_m",
+            "median_m",
+            "variance_m2",
+            "q1sigma_m",
+            "q2sigma_m",
+            "q3sigma_m",
+            "p25_m",
+            "p50_m",
+            "p75_m",
+        }
         assert got[g]["count"] == want[g]["count"]
-        median = float("nan") if got[g]["median_m"] is None else got[g]["median_m"]  # JSON null = NaN
+        median = (
+            float("nan") if got[g]["median_m"] is None else got[g]["median_m"]
+        )  # JSON null = NaN
         assert median == pytest.approx(want[g]["median_m"], nan_ok=True)
     assert got["nlos"]["count"] > 0 and got["los"]["count"] > 0
 
@@ -137,6 +152,12 @@ def test_cli_simulate_stats_calibrate_evaluate(tmp_path):
 
     # bad input: one line, exit 2
     assert_one_line_error(run_cli("stats", tmp_path / "missing.h5"), "no such file")
-    assert_one_line_error(run_cli("evaluate", res_path, "--truth", res_path), "expected mesh or trajectory")
-    assert_one_line_error(run_cli("simulate", "mesh", "-o", tmp_path / "x.h5", "--scenario", "nope"), "unknown")
-    assert_one_line_error(run_cli("simulate", "mesh", "-o", tmp_path / "no" / "x.h5"), "does not exist")
+    assert_one_line_error(
+        run_cli("evaluate", res_path, "--truth", res_path), "expected mesh or trajectory"
+    )
+    assert_one_line_error(
+        run_cli("simulate", "mesh", "-o", tmp_path / "x.h5", "--scenario", "nope"), "unknown"
+    )
+    assert_one_line_error(
+        run_cli("simulate", "mesh", "-o", tmp_path / "no" / "x.h5"), "does not exist"
+    )

@@ -52,7 +52,17 @@ def error_statistics(abs_err: np.ndarray) -> dict:
     """
     x = np.asarray(abs_err, dtype=np.float64).ravel()
     x = x[np.isfinite(x)]
-    keys = ("mean_m", "median_m", "variance_m2", "q1sigma_m", "q2sigma_m", "q3sigma_m", "p25_m", "p50_m", "p75_m")
+    keys = (
+        "mean_m",
+        "median_m",
+        "variance_m2",
+        "q1sigma_m",
+        "q2sigma_m",
+        "q3sigma_m",
+        "p25_m",
+        "p50_m",
+        "p75_m",
+    )
     if x.size == 0:
         return {"count": 0, **{k: float("nan") for k in keys}}
     q = np.quantile(x, [*SIGMA_LEVELS, 0.25, 0.5, 0.75])
@@ -188,7 +198,12 @@ def qq_r2(dataset: MeshDataset | TrajectoryDataset, n_quantiles: int = 101) -> d
         true, meas = true_all[keep], dataset.range.astype(np.float64)[keep]
     assert true.size == err.size
     if true.size < 2:
-        return {"r2_qq": float("nan"), "r2": float("nan"), "true_q": np.array([]), "measured_q": np.array([])}
+        return {
+            "r2_qq": float("nan"),
+            "r2": float("nan"),
+            "true_q": np.array([]),
+            "measured_q": np.array([]),
+        }
 
     def r2_of(x, y):
         sx, sy = x.std(), y.std()
@@ -198,8 +213,12 @@ def qq_r2(dataset: MeshDataset | TrajectoryDataset, n_quantiles: int = 101) -> d
 
     ts, ms = np.sort(true), np.sort(meas)
     p = np.linspace(0.0, 1.0, n_quantiles)
-    return {"r2_qq": r2_of(ts, ms), "r2": r2_of(true, meas),
-            "true_q": np.quantile(true, p), "measured_q": np.quantile(meas, p)}
+    return {
+        "r2_qq": r2_of(ts, ms),
+        "r2": r2_of(true, meas),
+        "true_q": np.quantile(true, p),
+        "measured_q": np.quantile(meas, p),
+    }
 
 
 def ecdf(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -230,7 +249,9 @@ def truth_in_result_frame(result: Result, truth: np.ndarray) -> np.ndarray:
         a0, a1, a2 = anchors
         n = t.shape[0]
         if max(anchors) >= n or not np.isfinite(t[list(anchors)]).all():
-            raise JaxcalError(f"frame anchors {anchors} have no truth; cannot evaluate in the result's frame")
+            raise JaxcalError(
+                f"frame anchors {anchors} have no truth; cannot evaluate in the result's frame"
+            )
         try:
             t = to_frame(t, a0, a1, a2)
         except ValueError as e:
@@ -291,8 +312,12 @@ def evaluate_mesh(result: Result, dataset: MeshDataset) -> dict:
         "final_rmse_m": rms(final_err[not_a0]),
         "aligned_rmse_m": rms(aligned),
         "nodes": [
-            {"id": nid, "rmse_m": float(node_rmse[i]), "final_error_m": float(final_err[i]),
-             "availability": float(availability[i])}
+            {
+                "id": nid,
+                "rmse_m": float(node_rmse[i]),
+                "final_error_m": float(final_err[i]),
+                "availability": float(availability[i]),
+            }
             for i, nid in enumerate(result.ids)
         ],
         "ecdf": {"epoch_error": ecdf(e[:, not_a0]), "node_rmse": ecdf(node_rmse[not_a0])},

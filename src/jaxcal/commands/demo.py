@@ -16,19 +16,54 @@ DEMO_CONFIGS = ("conf1", "conf2")
 
 # Table I of the grid paper (|range - true distance| statistics), for side-by-side printing.
 PAPER_TABLE_I = {
-    "los": {"share": 0.763, "mean_m": 0.28, "median_m": 0.21, "variance_m2": 1.59, "q1sigma_m": 0.26,
-            "q2sigma_m": 0.47, "q3sigma_m": 0.73, "p25_m": 0.16, "p50_m": 0.21, "p75_m": 0.29},
-    "nlos": {"share": 0.237, "mean_m": 3.78, "median_m": 0.69, "variance_m2": 41.56, "q1sigma_m": 1.41,
-             "q2sigma_m": 23.21, "q3sigma_m": 24.24, "p25_m": 0.54, "p50_m": 0.69, "p75_m": 3.79},
-    "all": {"share": 1.0, "mean_m": 1.11, "median_m": 0.25, "variance_m2": 13.26, "q1sigma_m": 0.35,
-            "q2sigma_m": 5.07, "q3sigma_m": 23.63, "p25_m": 0.18, "p50_m": 0.25, "p75_m": 0.44},
+    "los": {
+        "share": 0.763,
+        "mean_m": 0.28,
+        "median_m": 0.21,
+        "variance_m2": 1.59,
+        "q1sigma_m": 0.26,
+        "q2sigma_m": 0.47,
+        "q3sigma_m": 0.73,
+        "p25_m": 0.16,
+        "p50_m": 0.21,
+        "p75_m": 0.29,
+    },
+    "nlos": {
+        "share": 0.237,
+        "mean_m": 3.78,
+        "median_m": 0.69,
+        "variance_m2": 41.56,
+        "q1sigma_m": 1.41,
+        "q2sigma_m": 23.21,
+        "q3sigma_m": 24.24,
+        "p25_m": 0.54,
+        "p50_m": 0.69,
+        "p75_m": 3.79,
+    },
+    "all": {
+        "share": 1.0,
+        "mean_m": 1.11,
+        "median_m": 0.25,
+        "variance_m2": 13.26,
+        "q1sigma_m": 0.35,
+        "q2sigma_m": 5.07,
+        "q3sigma_m": 23.63,
+        "p25_m": 0.18,
+        "p50_m": 0.25,
+        "p75_m": 0.44,
+    },
 }
 
 
 def add_arguments(p) -> None:
-    p.add_argument("-o", "--output", default="demo-out", help="folder for the results (default ./demo-out)")
-    p.add_argument("--methods", default=None,
-                   help=f"comma-separated subset of {','.join(DEMO_METHODS)} (default: all registered)")
+    p.add_argument(
+        "-o", "--output", default="demo-out", help="folder for the results (default ./demo-out)"
+    )
+    p.add_argument(
+        "--methods",
+        default=None,
+        help=f"comma-separated subset of {','.join(DEMO_METHODS)} (default: all registered)",
+    )
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
 
 
@@ -72,7 +107,9 @@ def run(args) -> int:
         wanted = [m.strip() for m in args.methods.split(",") if m.strip()]
         unknown = [m for m in wanted if m not in MESH_METHODS]
         if unknown:
-            raise JaxcalError(f"--methods: not registered: {', '.join(unknown)} (known: {', '.join(sorted(MESH_METHODS))})")
+            raise JaxcalError(
+                f"--methods: not registered: {', '.join(unknown)} (known: {', '.join(sorted(MESH_METHODS))})"
+            )
         methods = wanted
     stream = sys.stderr if args.json else sys.stdout
 
@@ -92,8 +129,12 @@ def run(args) -> int:
             try:
                 result = calibrate(ds, method, config=conf)
             except Exception as e:  # one failing method must not hide the others' results
-                summary["runs"].append({"method": method, "config": conf, "error": f"{type(e).__name__}: {e}"})
-                say(f"{method} {conf}: failed ({type(e).__name__}: {' '.join(str(e).split())[:200]})")
+                summary["runs"].append(
+                    {"method": method, "config": conf, "error": f"{type(e).__name__}: {e}"}
+                )
+                say(
+                    f"{method} {conf}: failed ({type(e).__name__}: {' '.join(str(e).split())[:200]})"
+                )
                 continue
             seconds = time.perf_counter() - t0
             say(f"{method} {conf}: {seconds:.1f} s")
@@ -101,8 +142,15 @@ def run(args) -> int:
             hdf5.write(path, result)
             report = evaluate(result, ds)
             report.pop("ecdf", None)
-            summary["runs"].append({"method": method, "config": conf, "seconds": seconds,
-                                    "output": str(path), **report})
+            summary["runs"].append(
+                {
+                    "method": method,
+                    "config": conf,
+                    "seconds": seconds,
+                    "output": str(path),
+                    **report,
+                }
+            )
 
     say("")
     say(_format_runs(summary["runs"], ds.node_ids))

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 def add_arguments(p) -> None:
     p.add_argument("result", help="a result file (from `jaxcal calibrate`)")
-    p.add_argument("--truth", required=True, help="the dataset with ground truth (mesh or trajectory)")
+    p.add_argument(
+        "--truth", required=True, help="the dataset with ground truth (mesh or trajectory)"
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
 
 
@@ -23,11 +25,15 @@ def run(args) -> int:
     fmt = lambda v: "    -" if v is None or v != v else f"{v:7.3f}"  # noqa: E731
     print(f"{report['method']} on {report['dataset']}")
     if kind_of(truth) == "mesh":
-        print(f"rmse {fmt(report['rmse_m'])} m   final rmse {fmt(report['final_rmse_m'])} m   "
-              f"aligned rmse {fmt(report['aligned_rmse_m'])} m")
+        print(
+            f"rmse {fmt(report['rmse_m'])} m   final rmse {fmt(report['final_rmse_m'])} m   "
+            f"aligned rmse {fmt(report['aligned_rmse_m'])} m"
+        )
         print(f"{'node':<12}{'rmse [m]':>10}{'final [m]':>11}{'avail.':>8}")
         for n in report["nodes"]:
-            print(f"{n['id']:<12}{fmt(n['rmse_m']):>10}{fmt(n['final_error_m']):>11}{100 * n['availability']:>7.1f}%")
+            print(
+                f"{n['id']:<12}{fmt(n['rmse_m']):>10}{fmt(n['final_error_m']):>11}{100 * n['availability']:>7.1f}%"
+            )
     else:
         print(f"mean error {fmt(report['mean_error_m'])} m")
         for a in report["anchors"]:

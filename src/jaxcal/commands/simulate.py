@@ -5,10 +5,21 @@ from __future__ import annotations
 
 def add_arguments(p) -> None:
     p.add_argument("kind", choices=("mesh", "trajectory"), help="what to simulate")
-    p.add_argument("-o", "--output", required=True, help="file to write (contract mesh / trajectory)")
-    p.add_argument("--scenario", default=None, help="built-in scenario (mesh: torgau, small; trajectory: campus)")
+    p.add_argument(
+        "-o", "--output", required=True, help="file to write (contract mesh / trajectory)"
+    )
+    p.add_argument(
+        "--scenario",
+        default=None,
+        help="built-in scenario (mesh: torgau, small; trajectory: campus)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same file)")
-    p.add_argument("--drift", type=float, default=0.0, help="trajectory only: odometry drift (random walk) [m/sqrt(s)]")
+    p.add_argument(
+        "--drift",
+        type=float,
+        default=0.0,
+        help="trajectory only: odometry drift (random walk) [m/sqrt(s)]",
+    )
     p.add_argument("--json", action="store_true", help="print a JSON summary")
 
 
@@ -20,7 +31,9 @@ def _trajectory_simulator():
     except ModuleNotFoundError as e:
         if e.name != "jaxcal.sim.trajectory":
             raise
-        raise JaxcalError("trajectory simulation is not available yet (jaxcal.sim.trajectory missing)") from None
+        raise JaxcalError(
+            "trajectory simulation is not available yet (jaxcal.sim.trajectory missing)"
+        ) from None
     return simulate, SCENARIOS
 
 
@@ -41,12 +54,20 @@ def run(args) -> int:
         scenario = args.scenario or "campus"
         kwargs = {"drift": args.drift}
     if scenario not in SCENARIOS:
-        raise JaxcalError(f"unknown {args.kind} scenario {scenario!r} (known: {', '.join(sorted(SCENARIOS))})")
+        raise JaxcalError(
+            f"unknown {args.kind} scenario {scenario!r} (known: {', '.join(sorted(SCENARIOS))})"
+        )
     if args.seed < 0:
         raise JaxcalError(f"--seed must be non-negative, got {args.seed}")
     ds = simulate(scenario, seed=args.seed, **kwargs)
     hdf5.write(args.output, ds)
-    summary = {"kind": args.kind, "scenario": scenario, "seed": args.seed, "name": ds.name, "output": args.output}
+    summary = {
+        "kind": args.kind,
+        "scenario": scenario,
+        "seed": args.seed,
+        "name": ds.name,
+        "output": args.output,
+    }
     if args.kind == "mesh":
         summary.update(nodes=ds.n_nodes, epochs=ds.n_epochs)
     else:
@@ -54,7 +75,12 @@ def run(args) -> int:
     if args.json:
         print_json(summary)
     else:
-        size = f"{summary['nodes']} nodes, {summary['epochs']} epochs" if args.kind == "mesh" else (
-            f"{summary['anchors']} anchors, {summary['ranges']} ranges")
-        print(f"simulated {args.kind} scenario {scenario!r} (seed {args.seed}): {size} -> {args.output}")
+        size = (
+            f"{summary['nodes']} nodes, {summary['epochs']} epochs"
+            if args.kind == "mesh"
+            else (f"{summary['anchors']} anchors, {summary['ranges']} ranges")
+        )
+        print(
+            f"simulated {args.kind} scenario {scenario!r} (seed {args.seed}): {size} -> {args.output}"
+        )
     return 0

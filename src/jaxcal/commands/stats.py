@@ -27,7 +27,11 @@ def format_table(groups: dict, reference: dict | None = None) -> str:
         share = groups[g]["share"]
         return f"{label} ({100 * share:.1f} %)" if share == share else f"{label} (-)"
 
-    cols = [("los", head("los", "LOS")), ("nlos", head("nlos", "NLOS")), ("all", head("all", "All"))]
+    cols = [
+        ("los", head("los", "LOS")),
+        ("nlos", head("nlos", "NLOS")),
+        ("all", head("all", "All")),
+    ]
     lines = []
     header = f"{'':<22}" + "".join(f"{c[1]:>16}" for c in cols)
     if reference:
@@ -37,7 +41,9 @@ def format_table(groups: dict, reference: dict | None = None) -> str:
     for key, label in _ROWS:
         row = f"{label:<22}" + "".join(f"{groups[g][key]:>16.2f}" for g, _ in cols)
         if reference:
-            row += "".join(f"{reference[g].get(key, float('nan')):>13.2f}" for g in ("los", "nlos", "all"))
+            row += "".join(
+                f"{reference[g].get(key, float('nan')):>13.2f}" for g in ("los", "nlos", "all")
+            )
         lines.append(row)
     return "\n".join(lines)
 

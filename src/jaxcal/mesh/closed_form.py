@@ -69,12 +69,12 @@ def symmetrise(ranges: np.ndarray) -> np.ndarray:
 
 
 def _place_one_epoch(
-    d: Float[Array, "n n"],
-    anchors: Int[Array, "3"],
-    min_refs: Float[Array, ""],
-    min_ratio: Float[Array, ""],
-    anchors_only: Bool[Array, ""],
-) -> Float[Array, "n 2"]:
+    d: Float[Array, "n n"],  # noqa: F722
+    anchors: Int[Array, "3"],  # noqa: F722
+    min_refs: Float[Array, ""],  # noqa: F722
+    min_ratio: Float[Array, ""],  # noqa: F722
+    anchors_only: Bool[Array, ""],  # noqa: F722
+) -> Float[Array, "n 2"]:  # noqa: F722
     n = d.shape[0]
     a0, a1, a2 = anchors[0], anchors[1], anchors[2]
     idx = jnp.arange(n)
@@ -153,7 +153,9 @@ def place_epochs(
     if int(p.min_refs) < 3:
         raise JaxcalError(f"parameter min_refs: must be at least 3, got {p.min_refs}")
     if not 0.0 <= float(p.min_spread_ratio) <= 1.0:
-        raise JaxcalError(f"parameter min_spread_ratio: must lie in [0, 1], got {p.min_spread_ratio}")
+        raise JaxcalError(
+            f"parameter min_spread_ratio: must lie in [0, 1], got {p.min_spread_ratio}"
+        )
     d = jnp.asarray(distances)
     if d.shape[0] == 0:
         return np.zeros((0, d.shape[1], 2))
@@ -168,7 +170,9 @@ def place_epochs(
 
 
 def calibrate(
-    dataset: MeshDataset, params: Mapping[str, Any] | ClosedFormParams | None = None, config: str | None = None
+    dataset: MeshDataset,
+    params: Mapping[str, Any] | ClosedFormParams | None = None,
+    config: str | None = None,
 ) -> Result:
     """Closed-form calibration of a mesh dataset (registered as method `cf`).
 
@@ -181,7 +185,11 @@ def calibrate(
         Result in frame `anchors:a0,a1,a2` with the (K, N, 2) per-epoch track and the per-node
         median of the track as final position.
     """
-    p = params if isinstance(params, ClosedFormParams) else with_overrides(ClosedFormParams(), params)
+    p = (
+        params
+        if isinstance(params, ClosedFormParams)
+        else with_overrides(ClosedFormParams(), params)
+    )
     anchors = dataset.config(config)
     track = place_epochs(symmetrise(dataset.range), anchors, p)
     has = np.isfinite(track).all(axis=2)  # (K, N)

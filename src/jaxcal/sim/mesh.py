@@ -70,7 +70,20 @@ class MeshScenario:
     min_separation: float = 2.0
 
 
-_TORGAU_IDS = ("4503", "8B05", "4197", "9911", "D5B4", "8AA5", "1C2F", "6E31", "A07B", "B3D9", "2F44", "C812")
+_TORGAU_IDS = (
+    "4503",
+    "8B05",
+    "4197",
+    "9911",
+    "D5B4",
+    "8AA5",
+    "1C2F",
+    "6E31",
+    "A07B",
+    "B3D9",
+    "2F44",
+    "C812",
+)
 
 SCENARIOS: dict[str, MeshScenario] = {
     "torgau": MeshScenario(
@@ -78,8 +91,18 @@ SCENARIOS: dict[str, MeshScenario] = {
         hall=(44.0, 30.0),
         node_ids=_TORGAU_IDS,
         positions=(
-            (3.0, 3.0), (22.0, 2.0), (41.0, 4.0), (41.0, 24.0), (30.0, 26.0), (6.0, 27.0),
-            (15.0, 15.0), (29.0, 14.0), (12.0, 6.5), (37.0, 16.0), (20.0, 24.0), (4.0, 16.0),
+            (3.0, 3.0),
+            (22.0, 2.0),
+            (41.0, 4.0),
+            (41.0, 24.0),
+            (30.0, 26.0),
+            (6.0, 27.0),
+            (15.0, 15.0),
+            (29.0, 14.0),
+            (12.0, 6.5),
+            (37.0, 16.0),
+            (20.0, 24.0),
+            (4.0, 16.0),
         ),
         # an office room in the upper right corner (door gap at x = 25..27) and a shelf row
         walls=(
@@ -108,7 +131,10 @@ SCENARIOS: dict[str, MeshScenario] = {
 
 def _orient(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Sign of the 2-D cross product (b - a) x (c - a), broadcast over leading axes."""
-    return np.sign((b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0]))
+    return np.sign(
+        (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1])
+        - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0])
+    )
 
 
 def line_of_sight(positions: np.ndarray, walls) -> np.ndarray:
@@ -125,7 +151,7 @@ def line_of_sight(positions: np.ndarray, walls) -> np.ndarray:
     n = p.shape[0]
     los = np.ones((n, n), dtype=bool)
     a, b = p[:, None, :], p[None, :, :]
-    for (w0, w1) in walls:
+    for w0, w1 in walls:
         c, d = np.asarray(w0, dtype=np.float64), np.asarray(w1, dtype=np.float64)
         o1, o2 = _orient(a, b, c), _orient(a, b, d)
         o3, o4 = _orient(c, d, a), _orient(c, d, b)
@@ -159,7 +185,9 @@ def simulate(scenario: str | MeshScenario = "torgau", seed: int = 0, **overrides
     """
     if isinstance(scenario, str):
         if scenario not in SCENARIOS:
-            raise JaxcalError(f"unknown mesh scenario {scenario!r} (known: {', '.join(sorted(SCENARIOS))})")
+            raise JaxcalError(
+                f"unknown mesh scenario {scenario!r} (known: {', '.join(sorted(SCENARIOS))})"
+            )
         sc = SCENARIOS[scenario]
     else:
         sc = scenario
@@ -167,7 +195,9 @@ def simulate(scenario: str | MeshScenario = "torgau", seed: int = 0, **overrides
         known = {f.name for f in dataclasses.fields(MeshScenario)}
         bad = sorted(set(overrides) - known)
         if bad:
-            raise JaxcalError(f"unknown scenario field(s) {', '.join(bad)} (known: {', '.join(sorted(known))})")
+            raise JaxcalError(
+                f"unknown scenario field(s) {', '.join(bad)} (known: {', '.join(sorted(known))})"
+            )
         sc = dataclasses.replace(sc, **overrides)
     n = len(sc.node_ids)
     if sc.n_epochs < 1 or sc.rate_hz <= 0:
