@@ -70,7 +70,7 @@ def symmetrise(ranges: np.ndarray) -> np.ndarray:
 
 def _place_one_epoch(
     d: Float[Array, "n n"],  # noqa: F722
-    anchors: Int[Array, "3"],  # noqa: F722
+    anchors: Int[Array, "3"],  # noqa: F722, UP037
     min_refs: Float[Array, ""],  # noqa: F722
     min_ratio: Float[Array, ""],  # noqa: F722
     anchors_only: Bool[Array, ""],  # noqa: F722
