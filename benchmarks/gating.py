@@ -15,13 +15,14 @@ anchors heard) it reports:
   time reported apart), mean over a subset of queries. `ms_gated_batch` / `ms_full_batch`: the whole
   batch of queries in one call, best of `--repeats`, divided by the number of queries (the full
   search is then one matrix product, which BLAS does very efficiently). `ms_masked_batch`: the zone
-  mask over all keyframes, then a masked top-k (same descriptor work as full: gating by masking alone
-  saves nothing).
+  mask over all keyframes, then a masked top-k (same descriptor work as full: gating by masking
+  alone saves nothing).
 
-Calibration error: anchors = truth + Gaussian error of the given RMS size, with the honest covariance
-(error^2 / 3) I, so that the zones widen by k_sigma * sigma. With `--gp` (default when the GP method
-is registered and importable) also anchors calibrated by `jaxcal calibrate --method gp` on the
-simulated prior mapping run (the keyframe trajectory and its ranges), as in the paper's pipeline.
+Calibration error: anchors = truth + Gaussian error of the given RMS size, with the honest
+covariance (error^2 / 3) I, so that the zones widen by k_sigma * sigma. With `--gp` (default when
+the GP method is registered and importable, not with --quick) also anchors calibrated by
+`jaxcal calibrate --method gp` on the simulated prior mapping run (the keyframe trajectory and its
+ranges), as in the paper's pipeline.
 Heard anchors: the n shortest measured ranges of each query (all heard ranges carry the LOS / NLOS
 error mixture of `jaxcal.sim.channel`, NLOS share 0.2, including its 20-25 m outliers).
 
@@ -97,11 +98,18 @@ def gp_anchors(scene, seed: int):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="fewer configurations and queries (< 2 min)")
+    ap.add_argument(
+        "--quick", action="store_true", help="fewer configurations and queries (< 2 min)"
+    )
     ap.add_argument("--json", action="store_true", help="one JSON object per configuration")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeats", type=int, default=None)
-    ap.add_argument("--gp", choices=("auto", "yes", "no"), default="auto", help="also GP-calibrated anchors")
+    ap.add_argument(
+        "--gp",
+        choices=("auto", "yes", "no"),
+        default="auto",
+        help="also GP-calibrated anchors (auto: if available, not with --quick: takes minutes)",
+    )
     args = ap.parse_args(argv)
 
     quick = args.quick
@@ -122,29 +130,48 @@ def main(argv=None) -> int:
     q = qdesc.shape[0]
     device = jax.devices()[0]
     common = {
-        "device": f"{device.platform}:{device.device_kind}", "cpu_count": os.cpu_count(),
-        "keyframes": db.n_keyframes, "descriptor_dim": int(qdesc.shape[1]), "queries": q,
-        "anchors_total": int(scene.anchor_truth.shape[0]), "area_m": [cfg.width_m, cfg.height_m],
-        "delta_m": float(params.delta_m), "k_sigma": float(params.k_sigma), "range_rel": float(params.range_rel),
-        "repeats": repeats, "seed": args.seed,
+        "device": f"{device.platform}:{device.device_kind}",
+        "cpu_count": os.cpu_count(),
+        "keyframes": db.n_keyframes,
+        "descriptor_dim": int(qdesc.shape[1]),
+        "queries": q,
+        "anchors_total": int(scene.anchor_truth.shape[0]),
+        "area_m": [cfg.width_m, cfg.height_m],
+        "delta_m": float(params.delta_m),
+        "k_sigma": float(params.k_sigma),
+        "range_rel": float(params.range_rel),
+        "repeats": repeats,
+        "seed": args.seed,
     }
 
     # Ungated baseline, once.
     t0 = time.perf_counter()
     full = jax.block_until_ready(gating.search_full(db, qdesc, top_k=1))
     full_compile_s = time.perf_counter() - t0
-    full_s = best_time(lambda: jax.block_until_ready(gating.search_full(db, qdesc, top_k=1)), repeats)
+    full_s = best_time(
+        lambda: jax.block_until_ready(gating.search_full(db, qdesc, top_k=1)), repeats
+    )
     succ_full, err_full = score(kf_pos, np.asarray(full.index[:, 0]), truth)
     single = np.linspace(0, q - 1, n_single).astype(int)
     one = [qdesc[i] for i in single]
     jax.block_until_ready(gating.search_one_full(db, one[0], 1))
-    full_single_ms = 1e3 * float(np.mean([
-        best_time(lambda x=x: jax.block_until_ready(gating.search_one_full(db, x, 1)), repeats) for x in one]))
+    full_single_ms = 1e3 * float(
+        np.mean(
+            [
+                best_time(
+                    lambda x=x: jax.block_until_ready(gating.search_one_full(db, x, 1)), repeats
+                )
+                for x in one
+            ]
+        )
+    )
 
-    masked_fn = jax.jit(jax.vmap(gating.rank_masked, in_axes=(None, None, 0, 0, None, None)), static_argnums=5)
+    masked_fn = jax.jit(
+        jax.vmap(gating.rank_masked, in_axes=(None, None, 0, 0, None, None)), static_argnums=5
+    )
 
     calibrations = [("controlled", e) for e in errors]
-    if args.gp != "no":
+    if args.gp == "yes" or (args.gp == "auto" and not quick):
         gp = gp_anchors(scene, args.seed)
         if gp is not None:
             calibrations.append(("gp", gp))
@@ -176,53 +203,96 @@ def main(argv=None) -> int:
             compile_s = time.perf_counter() - t0
             gated_s = best_time(gated, repeats)
             jax.block_until_ready(masked_fn(db, anchors, r_j, qdesc, params, 1))
-            masked_s = best_time(lambda an=anchors: jax.block_until_ready(
-                masked_fn(db, an, r_j, qdesc, params, 1)), repeats)
+            masked_s = best_time(
+                lambda an=anchors, r=r_j: jax.block_until_ready(
+                    masked_fn(db, an, r, qdesc, params, 1)
+                ),
+                repeats,
+            )
             succ, err = score(kf_pos, np.asarray(res.index[:, 0]), truth)
             times = []
             for i in single:
                 r_i = r_j[i]
+
                 def one_query(r_i=r_i, q_i=qdesc[i], an=anchors, ix=index):
                     return jax.block_until_ready(gating.search_one(db, ix, an, r_i, q_i, params, 1))
+
                 one_query()  # compiles once (all capacity branches), then cached
                 times.append(best_time(one_query, repeats))
             single_ms = 1e3 * float(np.mean(times))
             heard = np.isfinite(ranges).sum(1)
             los_only = np.all(scene.query_los | ~np.isfinite(ranges), axis=1)
             row = {
-                "calibration": kind, "anchor_error_rms_m": float(np.sqrt(np.mean(a_err**2))),
-                "anchor_error_mean_m": float(a_err.mean()), "anchors_heard": n_heard,
+                "calibration": kind,
+                "anchor_error_rms_m": float(np.sqrt(np.mean(a_err**2))),
+                "anchor_error_mean_m": float(a_err.mean()),
+                "anchors_heard": n_heard,
                 "mean_anchors_heard": float(heard.mean()),
-                "success_gated": succ, "success_full": succ_full,
-                "error_gated_m": err, "error_full_m": err_full,
-                "ms_gated": single_ms, "ms_full": full_single_ms, "speedup": full_single_ms / single_ms,
-                "ms_gated_batch": 1e3 * gated_s / q, "ms_full_batch": 1e3 * full_s / q,
-                "ms_masked_batch": 1e3 * masked_s / q, "speedup_batch": full_s / gated_s,
+                "success_gated": succ,
+                "success_full": succ_full,
+                "error_gated_m": err,
+                "error_full_m": err_full,
+                "ms_gated": single_ms,
+                "ms_full": full_single_ms,
+                "speedup": full_single_ms / single_ms,
+                "ms_gated_batch": 1e3 * gated_s / q,
+                "ms_full_batch": 1e3 * full_s / q,
+                "ms_masked_batch": 1e3 * masked_s / q,
+                "speedup_batch": full_s / gated_s,
                 "latency_queries": int(n_single),
                 "mean_admissible": float(np.asarray(res.n_admissible).mean()),
                 "admissible_share": float(np.asarray(res.n_admissible).mean() / db.n_keyframes),
-                "success_gated_los_queries": float(np.mean(
-                    (np.linalg.norm(kf_pos[np.maximum(np.asarray(res.index[:, 0]), 0)] - truth, axis=1)
-                     < SUCCESS_M)[los_only])) if los_only.any() else float("nan"),
-                "compile_s": compile_s, "full_compile_s": full_compile_s, "index_build_ms": index_ms,
-                "sim_s": sim_s, **common,
+                "success_gated_los_queries": float(
+                    np.mean(
+                        (
+                            np.linalg.norm(
+                                kf_pos[np.maximum(np.asarray(res.index[:, 0]), 0)] - truth, axis=1
+                            )
+                            < SUCCESS_M
+                        )[los_only]
+                    )
+                )
+                if los_only.any()
+                else float("nan"),
+                "compile_s": compile_s,
+                "full_compile_s": full_compile_s,
+                "index_build_ms": index_ms,
+                "sim_s": sim_s,
+                **common,
             }
             rows.append(row)
             if args.json:
-                print(json.dumps({k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-                                  for k, v in row.items()}), flush=True)
+                print(
+                    json.dumps(
+                        {
+                            k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                            for k, v in row.items()
+                        }
+                    ),
+                    flush=True,
+                )
     if not args.json:
-        print(f"# {common['device']}, {db.n_keyframes} keyframes x {common['descriptor_dim']}-D, {q} queries, "
-              f"best of {repeats}; full search: success {succ_full:.1%}, {full_single_ms:.3f} ms/query "
-              f"one-shot, {1e3 * full_s / q:.3f} ms/query batched")
-        print(f"{'calib':>10} {'err_m':>6} {'heard':>5} {'succ_g':>7} {'succ_f':>7} {'err_g':>6} {'err_f':>6} "
-              f"{'ms_g':>7} {'ms_f':>7} {'x':>5} {'msb_g':>7} {'msb_f':>7} {'msb_msk':>7} {'adm%':>6}")
+        print(
+            f"# {common['device']}, {db.n_keyframes} keyframes x {common['descriptor_dim']}-D, "
+            f"{q} queries, "
+            f"best of {repeats}; full search: success {succ_full:.1%}, "
+            f"{full_single_ms:.3f} ms/query "
+            f"one-shot, {1e3 * full_s / q:.3f} ms/query batched"
+        )
+        print(
+            f"{'calib':>10} {'err_m':>6} {'heard':>5} {'succ_g':>7} {'succ_f':>7} "
+            f"{'err_g':>6} {'err_f':>6} "
+            f"{'ms_g':>7} {'ms_f':>7} {'x':>5} {'msb_g':>7} {'msb_f':>7} {'msb_msk':>7} {'adm%':>6}"
+        )
         for r in rows:
-            print(f"{r['calibration']:>10} {r['anchor_error_rms_m']:6.2f} {r['anchors_heard']:5d} "
-                  f"{r['success_gated']:7.1%} {r['success_full']:7.1%} {r['error_gated_m']:6.2f} "
-                  f"{r['error_full_m']:6.2f} {r['ms_gated']:7.3f} {r['ms_full']:7.3f} {r['speedup']:5.1f} "
-                  f"{r['ms_gated_batch']:7.3f} {r['ms_full_batch']:7.3f} {r['ms_masked_batch']:7.3f} "
-                  f"{100 * r['admissible_share']:6.2f}")
+            print(
+                f"{r['calibration']:>10} {r['anchor_error_rms_m']:6.2f} {r['anchors_heard']:5d} "
+                f"{r['success_gated']:7.1%} {r['success_full']:7.1%} {r['error_gated_m']:6.2f} "
+                f"{r['error_full_m']:6.2f} {r['ms_gated']:7.3f} {r['ms_full']:7.3f} "
+                f"{r['speedup']:5.1f} "
+                f"{r['ms_gated_batch']:7.3f} {r['ms_full_batch']:7.3f} {r['ms_masked_batch']:7.3f} "
+                f"{100 * r['admissible_share']:6.2f}"
+            )
     return 0
 
 

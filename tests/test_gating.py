@@ -8,14 +8,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import assert_one_line_error, run_cli
 
+from conftest import assert_one_line_error, run_cli
 from jaxcal.sim.places import PlaceConfig, perturb_anchors, simulate_places
 from jaxcal.trajectory import gating
 from jaxcal.trajectory.gating import Anchors, GateParams, KeyframeDB, ZoneIndex
 
-SMALL = PlaceConfig(width_m=90.0, height_m=64.0, cross_pitch_m=45.0, descriptor_dim=16,
-                    n_anchors_x=2, n_anchors_y=2, max_range_m=120.0)
+SMALL = PlaceConfig(
+    width_m=90.0,
+    height_m=64.0,
+    cross_pitch_m=45.0,
+    descriptor_dim=16,
+    n_anchors_x=2,
+    n_anchors_y=2,
+    max_range_m=120.0,
+)
 
 
 def _scene(rng, k=300, f=8, a=4, q=25, p_missing=0.4):
@@ -30,7 +37,7 @@ def _scene(rng, k=300, f=8, a=4, q=25, p_missing=0.4):
 
 
 def _slow_admissible(pos, anchors, sigma, r, delta, k_sigma, rel):
-    """Obviously-correct loop: keyframe i is admissible iff every heard anchor's zone contains it."""
+    """Obviously-correct loop: keyframe i admissible iff every heard anchor's zone contains it."""
     out = np.ones(len(pos), bool)
     for i in range(len(pos)):
         for a in range(len(anchors)):
@@ -58,9 +65,16 @@ def test_zone_mask_equals_numpy_loop(rng):
 
 def test_zones_of_several_anchors_intersect(rng):
     pos, desc, anchors, cov, _, _ = _scene(rng, k=400, a=3)
-    db, an, p = KeyframeDB.build(pos, desc), Anchors.from_estimate(anchors, cov), GateParams(delta_m=4.0)
+    db, an, p = (
+        KeyframeDB.build(pos, desc),
+        Anchors.from_estimate(anchors, cov),
+        GateParams(delta_m=4.0),
+    )
     r = np.linalg.norm(pos[7] - anchors, axis=1)
-    single = [np.asarray(gating.admissible(db, an, jnp.where(jnp.arange(3) == a, r, jnp.nan), p)) for a in range(3)]
+    single = [
+        np.asarray(gating.admissible(db, an, jnp.where(jnp.arange(3) == a, r, jnp.nan), p))
+        for a in range(3)
+    ]
     both = np.asarray(gating.admissible(db, an, jnp.asarray(r), p))
     assert np.array_equal(both, single[0] & single[1] & single[2])
     assert both.sum() < min(s.sum() for s in single)  # intersecting really narrows this scene
@@ -86,10 +100,13 @@ def test_indexed_search_equals_masked_and_a_loop(rng, metric):
     ix, p = ZoneIndex.build(db, an), GateParams(delta_m=3.0)
     batched = gating.search(db, ix, an, qdesc, ranges, p, top_k=5)
     masked = jax.vmap(gating.rank_masked, in_axes=(None, None, 0, 0, None, None))(
-        db, an, jnp.asarray(ranges), jnp.asarray(qdesc), p, 5)
+        db, an, jnp.asarray(ranges), jnp.asarray(qdesc), p, 5
+    )
     assert np.array_equal(batched.index, masked.index)
     n = np.asarray(batched.n_admissible)
-    assert (n < 64).any() and (n == len(pos)).any()  # both the gathered-slice path and the fallback ran
+    assert (n < 64).any() and (
+        n == len(pos)
+    ).any()  # both the gathered-slice path and the fallback ran
     assert np.array_equal(batched.n_admissible, masked.n_admissible)
     np.testing.assert_allclose(batched.distance, masked.distance, rtol=1e-10)
     # vmap over queries equals a Python loop of single-query calls (fixed capacity K: exact)
@@ -100,12 +117,14 @@ def test_indexed_search_equals_masked_and_a_loop(rng, metric):
         # brute force: rank the admissible keyframes by distance with NumPy
         mask = _slow_admissible(pos, anchors, np.asarray(an.sigma), ranges[i], 3.0, 2.0, 0.01)
         if metric == "cosine":
-            dist = 1 - (desc / np.linalg.norm(desc, axis=1, keepdims=True)) @ (qdesc[i] / np.linalg.norm(qdesc[i]))
+            dist = 1 - (desc / np.linalg.norm(desc, axis=1, keepdims=True)) @ (
+                qdesc[i] / np.linalg.norm(qdesc[i])
+            )
         else:
             dist = np.linalg.norm(desc - qdesc[i], axis=1)
         want = np.flatnonzero(mask)[np.argsort(dist[mask], kind="stable")][:5]
         got = np.asarray(one.index)
-        assert np.array_equal(got[: want.size], want) and np.all(got[want.size:] == -1)
+        assert np.array_equal(got[: want.size], want) and np.all(got[want.size :] == -1)
 
 
 def test_gating_keeps_true_place_when_errors_within_zone(rng):
@@ -117,14 +136,18 @@ def test_gating_keeps_true_place_when_errors_within_zone(rng):
     sig = np.array([0.5, 1.0, 2.0])
     # anchor error of length <= k_sigma * sigma, range error <= delta + range_rel * range
     u = rng.normal(size=(a, 3))
-    est = truth + (u / np.linalg.norm(u, axis=1, keepdims=True)) * 2.0 * sig[:, None] * rng.uniform(0, 1, (a, 1))
+    est = truth + (u / np.linalg.norm(u, axis=1, keepdims=True)) * 2.0 * sig[:, None] * rng.uniform(
+        0, 1, (a, 1)
+    )
     an = Anchors.from_estimate(est, sig[:, None, None] ** 2 * np.eye(3))
     db, ix = KeyframeDB.build(pos, desc), None
     ix = ZoneIndex.build(db, an)
     true_idx = rng.choice(k, 40, replace=False)
     d = np.linalg.norm(pos[true_idx][:, None] - truth[None], axis=-1)
     bound = (1.0 + 0.01 * d) * 0.999
-    ranges = d + rng.uniform(-1, 1, d.shape) * bound / 1.01  # keeps |error| < delta + rel * measured range
+    ranges = (
+        d + rng.uniform(-1, 1, d.shape) * bound / 1.01
+    )  # keeps |error| < delta + rel * measured range
     res = gating.search(db, ix, an, desc[true_idx], ranges, p, top_k=1)
     assert np.array_equal(np.asarray(res.index[:, 0]), true_idx)
     assert np.all(np.asarray(res.n_admissible) < k)  # and the gate did remove keyframes
@@ -159,12 +182,15 @@ def test_simulated_yard_is_repetitive_and_ranges_consistent():
     sc = simulate_places(3, SMALL, n_queries=40)
     k = sc.keyframe_position.shape[0]
     assert sc.keyframe_descriptor.shape == (k, 16) and sc.query_range.shape == (40, 4)
-    # the repeating pattern: the same spot one aisle over (y + row pitch) looks alike, other places do not
+    # repetition: the same spot one aisle over (y + row pitch) looks alike, other places do not
     d = sc.keyframe_descriptor / np.linalg.norm(sc.keyframe_descriptor, axis=1, keepdims=True)
     kp = sc.keyframe_position
     key = {(round(x, 3), round(y, 3)): i for i, (x, y, _) in enumerate(kp)}
-    pairs = [(i, key[(round(x, 3), round(y + SMALL.row_pitch_m, 3))]) for i, (x, y, _) in enumerate(kp)
-             if (round(x, 3), round(y + SMALL.row_pitch_m, 3)) in key]
+    pairs = [
+        (i, key[(round(x, 3), round(y + SMALL.row_pitch_m, 3))])
+        for i, (x, y, _) in enumerate(kp)
+        if (round(x, 3), round(y + SMALL.row_pitch_m, 3)) in key
+    ]
     assert len(pairs) > 50
     i, j = np.array(pairs).T
     rnd = np.random.default_rng(0).integers(0, k, (2, 500))
@@ -179,8 +205,20 @@ def test_simulated_yard_is_repetitive_and_ranges_consistent():
 
 
 def test_cli_simulate_end_to_end_and_reader(tmp_path):
-    proc = run_cli("gate", "--simulate", tmp_path, "--size", "small", "--max-anchors", "2",
-                   "-o", tmp_path / "out.h5", "--json", "--top-k", "3")
+    proc = run_cli(
+        "gate",
+        "--simulate",
+        tmp_path,
+        "--size",
+        "small",
+        "--max-anchors",
+        "2",
+        "-o",
+        tmp_path / "out.h5",
+        "--json",
+        "--top-k",
+        "3",
+    )
     assert proc.returncode == 0, proc.stderr
     import json
 
@@ -188,7 +226,9 @@ def test_cli_simulate_end_to_end_and_reader(tmp_path):
     assert out["n_queries"] == 60 and out["queries_with_truth"] == 60
     assert 0 < out["mean_anchors_heard"] <= 2
     assert out["mean_admissible"] < out["keyframes"]
-    assert out["success_gated"] > out["success_full"]  # seed 0: the repetitive yard fools the full search
+    assert (
+        out["success_gated"] > out["success_full"]
+    )  # seed 0: the repetitive yard fools the full search
     with h5py.File(tmp_path / "out.h5") as f:
         assert f.attrs["jaxcal_format"] == "result"
         assert f["candidates/index"].shape == (60, 3)
@@ -197,8 +237,19 @@ def test_cli_simulate_end_to_end_and_reader(tmp_path):
     from jaxcal.commands.gate import read_queries
 
     _, r, ids, _, truth = read_queries(str(tmp_path / "places_queries.h5"), 0.1)
-    sc = simulate_places(0, PlaceConfig(width_m=150.0, height_m=100.0, cross_pitch_m=50.0, descriptor_dim=64,
-                                        n_anchors_x=2, n_anchors_y=2, max_range_m=150.0), n_queries=60)
+    sc = simulate_places(
+        0,
+        PlaceConfig(
+            width_m=150.0,
+            height_m=100.0,
+            cross_pitch_m=50.0,
+            descriptor_dim=64,
+            n_anchors_x=2,
+            n_anchors_y=2,
+            max_range_m=150.0,
+        ),
+        n_queries=60,
+    )
     np.testing.assert_array_equal(r, sc.query_range.astype(np.float64))
     np.testing.assert_allclose(truth, sc.query_position)
     assert ids == ["A0", "A1", "A2", "A3"]

@@ -1,9 +1,9 @@
 """A simulated repetitive environment for place recognition: a container yard with UWB anchors.
 
 Container rows run along x, separated by aisles every `row_pitch_m`; cross aisles run along y every
-`cross_pitch_m`. A prior mapping run drives every aisle and drops a keyframe every `keyframe_step_m`;
-a later run (the queries) follows the same aisles with a lateral offset, as in Table II of the
-second paper ("the testing sequence overlaps with the prior but with offset").
+`cross_pitch_m`. A prior mapping run drives every aisle and drops a keyframe every
+`keyframe_step_m`; a later run (the queries) follows the same aisles with a lateral offset, as in
+Table II of the second paper ("the testing sequence overlaps with the prior but with offset").
 
 The descriptor of a place is a stand-in for any global place-recognition descriptor (STD, Scan
 Context...): a sum of two random-Fourier-feature fields of the position,
@@ -11,12 +11,14 @@ Context...): a sum of two random-Fourier-feature fields of the position,
     desc(p) = repeat * R(phi(p)) + unique * U(p) + noise,
 
 where `phi(p)` maps p onto the container period (x modulo `container_pitch_m`, y modulo
-`row_pitch_m`) so that `R` is identical at every repetition of the pattern, and `U` is a smooth field
-of length scale `unique_scale_m` (the few distinctive things: a lamp post, a parked truck). Map and
+`row_pitch_m`) so that `R` is identical at every repetition of the pattern, and `U` is a smooth
+field of length scale `unique_scale_m` (the few distinctive things: a lamp post, a parked truck).
+Map and
 query descriptors get independent noise. With a large `repeat` / `unique` ratio, many places far
-apart look alike and an ungated nearest-descriptor search often lands in the wrong aisle. The default
-`unique = 0.3` was chosen so that the ungated search succeeds on roughly 40 % of the queries (43 % on
-seed 0), the regime of the paper's STD baseline; it is a knob of the scene, not of the gating.
+apart look alike and an ungated nearest-descriptor search often lands in the wrong aisle. The
+default `unique = 0.3` was chosen so that the ungated search succeeds on roughly 40 % of the
+queries (43 % on seed 0), the regime of the paper's STD baseline; it is a knob of
+the scene, not of the gating.
 
 Ranges from the platform to the anchors: true distance plus the LOS/NLOS error mixture of
 `jaxcal.sim.channel` (NLOS with probability `nlos_share`), only within `max_range_m`.
@@ -80,7 +82,7 @@ class PlaceScene(eqx.Module):
     Attributes:
         anchor_truth: (A, 3) true anchor positions [m].
         keyframe_time: (K,) [s]; keyframe_position: (K, 3) [m]; keyframe_descriptor: (K, F) float32.
-        keyframe_range: (K, A) float32 ranges from each keyframe pose to each anchor [m], NaN = not heard.
+        keyframe_range: (K, A) float32 ranges keyframe -> anchor [m], NaN = not heard.
         query_time: (Q,) [s]; query_position: (Q, 3) true query positions [m];
         query_descriptor: (Q, F) float32; query_range: (Q, A) float32 [m], NaN = not heard.
         query_los: (Q, A) bool, True where the query range was LOS.
@@ -118,7 +120,7 @@ def _route(cfg: PlaceConfig) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _Field:
-    """Random Fourier features: <f(p), f(p')> ~ exp(-|p - p'|^2 / (2 l^2)) for unit-variance output."""
+    """Random Fourier features, unit variance: <f(p), f(p')> ~ exp(-|p - p'|^2 / (2 l^2))."""
 
     def __init__(self, rng: np.random.Generator, in_dim: int, out_dim: int, scale: float):
         self.w = rng.normal(size=(in_dim, out_dim)) / scale
@@ -146,7 +148,10 @@ def _ranges(rng, cfg: PlaceConfig, pos: np.ndarray, anchors: np.ndarray, channel
 
 
 def simulate_places(
-    seed: int, config: PlaceConfig | None = None, n_queries: int = 500, channel: ChannelModel | None = None
+    seed: int,
+    config: PlaceConfig | None = None,
+    n_queries: int = 500,
+    channel: ChannelModel | None = None,
 ) -> PlaceScene:
     """Simulate a repetitive yard, its prior keyframe map and a query run.
 
@@ -180,7 +185,9 @@ def simulate_places(
     gx = (np.arange(cfg.n_anchors_x) + 0.5) * cfg.width_m / cfg.n_anchors_x
     gy = (np.arange(cfg.n_anchors_y) + 0.5) * cfg.height_m / cfg.n_anchors_y
     grid = np.array([(x, y) for y in gy for x in gx])
-    jitter = rng.uniform(-0.2, 0.2, grid.shape) * np.array([cfg.width_m / cfg.n_anchors_x, cfg.height_m / cfg.n_anchors_y])
+    jitter = rng.uniform(-0.2, 0.2, grid.shape) * np.array(
+        [cfg.width_m / cfg.n_anchors_x, cfg.height_m / cfg.n_anchors_y]
+    )
     anchors = np.column_stack([grid + jitter, np.full(len(grid), cfg.anchor_height_m)])
 
     # Query run: random places along the route, shifted along and across the aisle.
@@ -197,13 +204,22 @@ def simulate_places(
     kf_range, _ = _ranges(rng, cfg, kf_pos, anchors, channel)
     q_range, q_los = _ranges(rng, cfg, q_pos, anchors, channel)
     return PlaceScene(
-        anchor_truth=anchors, keyframe_time=kf_time, keyframe_position=kf_pos, keyframe_descriptor=kf_desc,
-        keyframe_range=kf_range, query_time=q_time, query_position=q_pos, query_descriptor=q_desc,
-        query_range=q_range, query_los=q_los,
+        anchor_truth=anchors,
+        keyframe_time=kf_time,
+        keyframe_position=kf_pos,
+        keyframe_descriptor=kf_desc,
+        keyframe_range=kf_range,
+        query_time=q_time,
+        query_position=q_pos,
+        query_descriptor=q_desc,
+        query_range=q_range,
+        query_los=q_los,
     )
 
 
-def perturb_anchors(rng: np.random.Generator, truth: np.ndarray, error_m: float) -> tuple[np.ndarray, np.ndarray]:
+def perturb_anchors(
+    rng: np.random.Generator, truth: np.ndarray, error_m: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Anchors 'calibrated' with a controlled error: truth + N(0, (error_m^2 / D) I) per anchor.
 
     Args:

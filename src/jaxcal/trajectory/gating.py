@@ -8,7 +8,7 @@ Each heard anchor `a` with range `r_a` admits the keyframes inside its range zon
 
 where `delta` is the paper's bias (it widens the zone boundaries `r_{i-1} - delta <= ||p - a|| <
 r_i + delta`), `sigma_a` the anchor's calibration uncertainty (square root of the largest eigenvalue
-of its covariance, i.e. its worst direction) and `range_rel * r_a` a width that grows with the range.
+of its covariance, i.e. its worst direction) and `range_rel * r_a` a width growing with the range.
 The zones of several anchors intersect; a query with no usable range falls back to the full search.
 Descriptor matching (cosine or L2 distance) then ranks the admissible keyframes.
 
@@ -18,8 +18,9 @@ Three implementations of the same ranking, all for one query and `vmap`ped outwa
 - `rank_masked`: the zone mask over all keyframes, then a masked top-k; simple, same work as full.
 - `rank_indexed`: the fast path. `ZoneIndex` keeps, per anchor, the keyframes sorted by distance to
   it, so a zone is one contiguous slice found by binary search. The anchor with the smallest zone is
-  the pivot; its slice (at most `capacity` keyframes) is gathered, the other anchors' zones are tested
-  on those candidates only, and only they are matched: work O(A log K + capacity * F) instead of
+  the pivot; its slice (at most `capacity` keyframes) is gathered, the other anchors' zones are
+  tested on those candidates only, and only they are matched: work O(A log K + capacity * F)
+  instead of
   O(K * F). `search` picks `capacity` per query (powers of two, so few compilations) and is exact.
 
 The sort-based index is an exact continuous version of the paper's discrete range zones ("radii"
@@ -27,6 +28,8 @@ r_i with boundaries widened by delta): a zone is looked up by binary search inst
 """
 
 from __future__ import annotations
+
+import functools
 
 import equinox as eqx
 import jax
@@ -101,7 +104,9 @@ class KeyframeDB(eqx.Module):
         if metric == "cosine":
             norm = jnp.linalg.norm(desc, axis=1, keepdims=True)
             desc = desc / jnp.where(norm > 0, norm, 1.0)
-        return cls(position=pos, descriptor=desc, sq_norm=jnp.sum(desc * desc, axis=1), metric=metric)
+        return cls(
+            position=pos, descriptor=desc, sq_norm=jnp.sum(desc * desc, axis=1), metric=metric
+        )
 
     @property
     def n_keyframes(self) -> int:
@@ -112,7 +117,7 @@ class Anchors(eqx.Module):
     """Calibrated anchors used for gating.
 
     Attributes:
-        position: (A, D) anchor positions [m]; a NaN row is an anchor without estimate (never gates).
+        position: (A, D) anchor positions [m]; a NaN row: no estimate (never gates).
         sigma: (A,) one-sigma position uncertainty [m] along the worst direction (0 when unknown).
     """
 
@@ -138,7 +143,10 @@ class Anchors(eqx.Module):
         else:
             cov = np.asarray(covariance, dtype=np.float64)
             if cov.shape != (pos.shape[0], pos.shape[1], pos.shape[1]):
-                raise ValueError(f"anchor covariances: expected shape {(pos.shape[0],) + pos.shape[1:] * 2}, got {cov.shape}")
+                raise ValueError(
+                    f"anchor covariances: expected shape {(pos.shape[0],) + pos.shape[1:] * 2}, "
+                    f"got {cov.shape}"
+                )
             ok = np.all(np.isfinite(cov), axis=(1, 2))
             safe = np.where(ok[:, None, None], cov, 0.0)
             eig = np.linalg.eigvalsh(0.5 * (safe + np.swapaxes(safe, 1, 2)))
@@ -213,7 +221,9 @@ def _usable(anchors: Anchors, range_m: Float[Array, " A"]) -> Bool[Array, " A"]:
     return pos_ok & jnp.isfinite(range_m) & (range_m >= 0)
 
 
-def zone_halfwidth(anchors: Anchors, range_m: Float[Array, " A"], params: GateParams) -> Float[Array, " A"]:
+def zone_halfwidth(
+    anchors: Anchors, range_m: Float[Array, " A"], params: GateParams
+) -> Float[Array, " A"]:
     """Half-width w_a [m] of each anchor's range zone for measured ranges `range_m` (A,) [m]."""
     r = jnp.where(jnp.isfinite(range_m), range_m, 0.0)
     return params.delta_m + params.k_sigma * anchors.sigma + params.range_rel * r
@@ -263,7 +273,7 @@ def _top(dist, valid, index, top_k: int, n_admissible) -> Candidates:
 
 
 def rank_full(db: KeyframeDB, descriptor: Float[Array, " F"], top_k: int) -> Candidates:
-    """Ungated search: the `top_k` keyframes (top_k <= K) nearest in descriptor space to one query."""
+    """Ungated search: the `top_k` (<= K) keyframes nearest in descriptor space to one query."""
     dist = _descriptor_distance(db.descriptor, db.sq_norm, descriptor, db.metric)
     k = db.position.shape[0]
     valid = jnp.ones(k, bool)
@@ -300,7 +310,9 @@ def _pivot_slice(index: ZoneIndex, anchors: Anchors, range_m, params):
     return lo, hi
 
 
-def zone_counts(index: ZoneIndex, anchors: Anchors, range_m: Float[Array, " A"], params: GateParams):
+def zone_counts(
+    index: ZoneIndex, anchors: Anchors, range_m: Float[Array, " A"], params: GateParams
+):
     """Size of the smallest (pivot) zone slice of one query: the capacity `rank_indexed` needs."""
     lo, hi = _pivot_slice(index, anchors, range_m, params)
     return jnp.min(hi - lo)
@@ -360,6 +372,10 @@ def _indexed_batch(db, index, anchors, ranges, descriptors, params, top_k, capac
     )
 
 
+def _branch(db, index, anchors, params, top_k, capacity, range_m, descriptor):
+    return rank_indexed(db, index, anchors, range_m, descriptor, params, top_k, capacity)
+
+
 def _ladder(k: int, floor: int) -> list[int]:
     caps, c = [], floor
     while c < k:
@@ -383,7 +399,7 @@ def search_one(
 
     The capacity is chosen on the device: `lax.switch` over the ladder min_capacity, 2 min_capacity,
     ..., K runs only the branch whose capacity covers the pivot zone, so the work follows the zone
-    size. Exact; equals `rank_masked`. (Under `vmap` a switch runs every branch: batch with `search`.)
+    size. Exact; equals `rank_masked`. (Under `vmap` a switch runs every branch: use `search`.)
 
     Args:
         db, index, anchors: database, its zone index, the anchors (A).
@@ -397,9 +413,7 @@ def search_one(
     caps = _ladder(k, max(_pow2(top_k), _pow2(min_capacity)))
     need = zone_counts(index, anchors, range_m, params)
     branch = jnp.searchsorted(jnp.asarray(caps), need, side="left")
-    fns = [
-        (lambda c: lambda r, q: rank_indexed(db, index, anchors, r, q, params, top_k, c))(c) for c in caps
-    ]
+    fns = [functools.partial(_branch, db, index, anchors, params, top_k, c) for c in caps]
     return jax.lax.switch(jnp.minimum(branch, len(caps) - 1), fns, range_m, descriptor)
 
 
@@ -416,11 +430,15 @@ def _pow2(n: int) -> int:
 def _check_batch(db: KeyframeDB, anchors: Anchors, descriptors, ranges, top_k: int) -> None:
     if descriptors.ndim != 2 or descriptors.shape[1] != db.descriptor.shape[1]:
         raise ValueError(
-            f"query descriptors: expected shape (Q, {db.descriptor.shape[1]}), got {tuple(descriptors.shape)}"
+            f"query descriptors: expected shape (Q, {db.descriptor.shape[1]}), "
+            f"got {tuple(descriptors.shape)}"
         )
-    if ranges is not None and (ranges.ndim != 2 or ranges.shape != (descriptors.shape[0], anchors.position.shape[0])):
+    if ranges is not None and (
+        ranges.ndim != 2 or ranges.shape != (descriptors.shape[0], anchors.position.shape[0])
+    ):
         raise ValueError(
-            f"query ranges: expected shape ({descriptors.shape[0]}, {anchors.position.shape[0]}), got {tuple(ranges.shape)}"
+            f"query ranges: expected shape ({descriptors.shape[0]}, {anchors.position.shape[0]}), "
+            f"got {tuple(ranges.shape)}"
         )
     if not 1 <= top_k <= db.n_keyframes:
         raise ValueError(f"top_k must be in [1, {db.n_keyframes}], got {top_k}")
@@ -431,7 +449,8 @@ def search_full(db: KeyframeDB, descriptors, top_k: int = 5) -> Candidates:
     descriptors = jnp.asarray(descriptors)
     if descriptors.ndim != 2 or descriptors.shape[1] != db.descriptor.shape[1]:
         raise ValueError(
-            f"query descriptors: expected shape (Q, {db.descriptor.shape[1]}), got {tuple(descriptors.shape)}"
+            f"query descriptors: expected shape (Q, {db.descriptor.shape[1]}), "
+            f"got {tuple(descriptors.shape)}"
         )
     if not 1 <= top_k <= db.n_keyframes:
         raise ValueError(f"top_k must be in [1, {db.n_keyframes}], got {top_k}")
@@ -452,7 +471,8 @@ def search(
     """Gated batched search, exact and proportional in work to the zone sizes.
 
     Queries are grouped by the capacity their pivot zone needs (a power of two, at least `top_k`
-    and `min_capacity`, at most K: a query with no usable range lands in the K group, i.e. the full search); each group
+    and `min_capacity`, at most K: a query with no usable range lands in the K group, i.e. the full
+    search); each group
     runs as jitted `vmap`s of `rank_indexed` over chunks of `batch` queries (the last chunk padded),
     so compilations stay few: one per capacity, at most log2(K / min_capacity) + 1.
 
@@ -495,4 +515,8 @@ def search(
         out_index[part] = np.asarray(res.index)[:n]
         out_dist[part] = np.asarray(res.distance)[:n]
         out_n[part] = np.asarray(res.n_admissible)[:n]
-    return Candidates(index=jnp.asarray(out_index), distance=jnp.asarray(out_dist), n_admissible=jnp.asarray(out_n))
+    return Candidates(
+        index=jnp.asarray(out_index),
+        distance=jnp.asarray(out_dist),
+        n_admissible=jnp.asarray(out_n),
+    )
