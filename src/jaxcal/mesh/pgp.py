@@ -68,7 +68,10 @@ class PGPParams(eqx.Module):
         update_order: "jacobi" or "gauss-seidel" (see the module docstring).
         min_refs: localised neighbours a node must have heard before it counts as localised.
         a2_all: let a2 use every localised node, not only a0 and a1 (eq. 6 uses a0 and a1).
-        p_out: robust floor of each likelihood factor (0: the paper's eq. 11).
+        p_out: robust floor of each likelihood factor, `(1 - p_out) * eq.11-factor + p_out` (0: the
+            paper's eq. 11 exactly). Default 0.05: with heavy-tailed NLOS ranges a pure Gaussian factor
+            lets one outlier ring outvote the others (simulated torgau conf1, 200 epochs: RMSE 2.97 m at
+            0 and 2.58 m at sigma_r = 1, 0.29 m at p_out = 0.05).
         likelihood: "sparse" (skip neighbours without a range and hypotheses outside `tau`; loops) or
             "dense" (evaluate every pair and hypothesis, vmapped, then mask): same answer.
     """
@@ -89,7 +92,7 @@ class PGPParams(eqx.Module):
     update_order: str = "jacobi"
     min_refs: int = 3
     a2_all: bool = False
-    p_out: float = 0.0
+    p_out: float = 0.05
     likelihood: str = "sparse"
 
 
