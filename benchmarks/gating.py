@@ -14,9 +14,9 @@ anchors heard) it reports:
   `jax.block_until_ready`, best of 20 (quick: 10) per query after a warm-up call that compiles
   (compile time reported apart), mean over 30 (quick: 15) queries spread along the run.
   `ms_gated_batch` / `ms_full_batch`: the whole batch of queries in one call, best of `--repeats`,
-  divided by the number of queries (the full search is then one matrix product, which BLAS does very efficiently). `ms_masked_batch`: the zone
-  mask over all keyframes, then a masked top-k (same descriptor work as full: gating by masking
-  alone saves nothing).
+  divided by the number of queries (the full search is then one matrix product, which BLAS does
+  very efficiently). `ms_masked_batch`: the zone mask over all keyframes, then a masked top-k
+  (same descriptor work as full: gating by masking alone saves nothing).
 
 Calibration error: anchors = truth + Gaussian error of the given RMS size, with the honest
 covariance (error^2 / 3) I, so that the zones widen by k_sigma * sigma. With `--gp` (default when
