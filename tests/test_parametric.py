@@ -5,15 +5,15 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import run_cli
-from test_pgp import SMALL, make_mesh
 
+from conftest import run_cli
 from jaxcal.io import hdf5
 from jaxcal.mesh import grid as G
 from jaxcal.mesh import parametric
 from jaxcal.mesh.frame import to_frame
 from jaxcal.mesh.pgp import PGPParams, _hypotheses, prepare, run_pgp
 from jaxcal.mesh.pgp_reference import run_reference
+from test_pgp import SMALL, make_mesh
 
 
 @pytest.mark.parametrize("order", ["jacobi", "gauss-seidel"])
@@ -23,16 +23,28 @@ def test_matches_loop_reference(order):
     _, info = run_pgp(ds, p, mode="parametric")
     cfg, _, inp, _, _ = prepare(ds, p, None, mode="parametric")
     ref = run_reference(
-        np.asarray(inp.z), np.asarray(inp.dt), cfg.grid.n_half, p.cell_m, top_k=cfg.top_k, n_hyp=cfg.n_hyp,
-        tau=p.tau, r_est=p.r_est, sigma_r=p.sigma_r, v=p.v, sigma_v=p.sigma_v, p_out=p.p_out,
-        update_order=order, mode="parametric", min_refs=p.min_refs,
+        np.asarray(inp.z),
+        np.asarray(inp.dt),
+        cfg.grid.n_half,
+        p.cell_m,
+        top_k=cfg.top_k,
+        n_hyp=cfg.n_hyp,
+        tau=p.tau,
+        r_est=p.r_est,
+        sigma_r=p.sigma_r,
+        v=p.v,
+        sigma_v=p.sigma_v,
+        p_out=p.p_out,
+        update_order=order,
+        mode="parametric",
+        min_refs=p.min_refs,
     )
     np.testing.assert_allclose(info.posterior, ref["posterior"], atol=1e-9)  # x64, rounding only
     np.testing.assert_allclose(info.raw_track, ref["raw"], atol=1e-9)
 
 
 def test_eq9_noise_is_sigma_r_plus_sqrt_trace():
-    """A neighbour with two equally likely cells 2 m apart: one hypothesis at their mean, sigma + 1 m."""
+    """Neighbour with two equally likely cells 2 m apart: one hypothesis at the mean, sigma + 1."""
     grid = G.Grid(n_half=3, cell_m=1.0)
     cells = grid.cells()
     lp = jnp.full((cells.shape[0],), -jnp.inf)
@@ -55,7 +67,13 @@ def test_noise_free_placement_and_cli(tmp_path):
     assert res.method == "parametric"
     src, out = tmp_path / "m.h5", tmp_path / "r.h5"
     hdf5.write(src, make_mesh(n=4, k=4, noise=0.1, seed=11))
-    proc = run_cli("calibrate", src, "--method", "parametric", "-o", out, "--set", "cell_m=1.0", "--json")
+    proc = run_cli(
+        "calibrate", src, "--method", "parametric", "-o", out, "--set", "cell_m=1.0", "--json"
+    )
     assert proc.returncode == 0, proc.stderr
     r = hdf5.read(out)
-    assert r.method == "parametric" and r.covariance.shape == (4, 2, 2) and np.isfinite(r.position).all()
+    assert (
+        r.method == "parametric"
+        and r.covariance.shape == (4, 2, 2)
+        and np.isfinite(r.position).all()
+    )

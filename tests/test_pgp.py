@@ -6,8 +6,8 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import assert_one_line_error, run_cli
 
+from conftest import assert_one_line_error, run_cli
 from jaxcal.data import MeshDataset
 from jaxcal.errors import JaxcalError
 from jaxcal.io import hdf5
@@ -17,7 +17,9 @@ from jaxcal.mesh.pgp import PGPParams, prepare, run_pgp
 from jaxcal.mesh.pgp_reference import run_reference
 
 
-def make_mesh(n=6, k=6, noise=0.0, missing=0.0, seed=0, span=5.0, never=(), configs=None) -> MeshDataset:
+def make_mesh(
+    n=6, k=6, noise=0.0, missing=0.0, seed=0, span=5.0, never=(), configs=None
+) -> MeshDataset:
     """Random 2-D nodes, ranges = true distance + Gaussian noise, some missing."""
     rng = np.random.default_rng(seed)
     while True:
@@ -33,15 +35,30 @@ def make_mesh(n=6, k=6, noise=0.0, missing=0.0, seed=0, span=5.0, never=(), conf
     for e in range(k):
         np.fill_diagonal(r[e], np.nan)
     return MeshDataset(
-        name="t", node_ids=[f"n{i}" for i in range(n)], time=np.arange(k) * 0.1,
-        range=r.astype(np.float32), truth=truth, configs=configs or {},
+        name="t",
+        node_ids=[f"n{i}" for i in range(n)],
+        time=np.arange(k) * 0.1,
+        range=r.astype(np.float32),
+        truth=truth,
+        configs=configs or {},
     )
 
 
-# one grid for every small test (the margin always reaches the cap: R = 7 m, 15 x 15 cells), so most tests
+# one grid for every small test (the margin always reaches the cap: R = 7 m, 15 x 15 cells), so
+# most tests
 # share one compilation
-SMALL = dict(cell_m=1.0, extent_m=7.0, margin_m=10.0, top_k=6, max_hyp=4, tau=0.8, sigma_r=0.5, sigma_v=0.7,
-             r_est=1.5, min_refs=2)
+SMALL = dict(
+    cell_m=1.0,
+    extent_m=7.0,
+    margin_m=10.0,
+    top_k=6,
+    max_hyp=4,
+    tau=0.8,
+    sigma_r=0.5,
+    sigma_v=0.7,
+    r_est=1.5,
+    min_refs=2,
+)
 
 
 @pytest.mark.parametrize("order", ["jacobi", "gauss-seidel"])
@@ -53,9 +70,20 @@ def test_matches_loop_reference(order, likelihood):
     cfg, _, inp, _, order_idx = prepare(ds, p, None)
     assert list(order_idx) == list(range(6))
     ref = run_reference(
-        np.asarray(inp.z), np.asarray(inp.dt), cfg.grid.n_half, p.cell_m, top_k=cfg.top_k, n_hyp=cfg.n_hyp,
-        tau=p.tau, r_est=p.r_est, sigma_r=p.sigma_r, v=p.v, sigma_v=p.sigma_v, p_out=p.p_out,
-        update_order=order, min_refs=p.min_refs,
+        np.asarray(inp.z),
+        np.asarray(inp.dt),
+        cfg.grid.n_half,
+        p.cell_m,
+        top_k=cfg.top_k,
+        n_hyp=cfg.n_hyp,
+        tau=p.tau,
+        r_est=p.r_est,
+        sigma_r=p.sigma_r,
+        v=p.v,
+        sigma_v=p.sigma_v,
+        p_out=p.p_out,
+        update_order=order,
+        min_refs=p.min_refs,
     )
     # x64: both are exact up to rounding; 1e-9 leaves room for summation order
     np.testing.assert_allclose(info.posterior, ref["posterior"], atol=1e-9)
@@ -71,8 +99,18 @@ def test_moving_nodes_match_reference():
     _, info = run_pgp(ds, p)
     cfg, _, inp, _, _ = prepare(ds, p, None)
     ref = run_reference(
-        np.asarray(inp.z), np.asarray(inp.dt), cfg.grid.n_half, p.cell_m, top_k=cfg.top_k, n_hyp=cfg.n_hyp,
-        tau=p.tau, r_est=p.r_est, sigma_r=p.sigma_r, v=p.v, sigma_v=p.sigma_v, min_refs=p.min_refs,
+        np.asarray(inp.z),
+        np.asarray(inp.dt),
+        cfg.grid.n_half,
+        p.cell_m,
+        top_k=cfg.top_k,
+        n_hyp=cfg.n_hyp,
+        tau=p.tau,
+        r_est=p.r_est,
+        sigma_r=p.sigma_r,
+        v=p.v,
+        sigma_v=p.sigma_v,
+        min_refs=p.min_refs,
     )
     np.testing.assert_allclose(info.posterior, ref["posterior"], atol=1e-9)
     np.testing.assert_allclose(info.raw_track, ref["raw"], atol=1e-9)
@@ -91,16 +129,23 @@ def test_relabelling_non_anchor_nodes_changes_nothing():
     res, _ = run_pgp(ds, SMALL)
     perm = np.array([0, 1, 2, 5, 3, 4])  # new node k is old node perm[k]
     ds2 = MeshDataset(
-        name="t", node_ids=[ds.node_ids[i] for i in perm], time=ds.time,
-        range=ds.range[:, perm][:, :, perm], truth=ds.truth[perm],
+        name="t",
+        node_ids=[ds.node_ids[i] for i in perm],
+        time=ds.time,
+        range=ds.range[:, perm][:, :, perm],
+        truth=ds.truth[perm],
     )
     res2, _ = run_pgp(ds2, SMALL)
     np.testing.assert_allclose(res2.position, res.position[perm], atol=1e-9)
     np.testing.assert_allclose(res2.track_position, res.track_position[:, perm], atol=1e-9)
     # and moving the anchors themselves to other indices via a named configuration
     ds3 = MeshDataset(
-        name="t", node_ids=[ds.node_ids[i] for i in perm[::-1]], time=ds.time,
-        range=ds.range[:, perm[::-1]][:, :, perm[::-1]], truth=ds.truth[perm[::-1]], configs={"c": (5, 4, 3)},
+        name="t",
+        node_ids=[ds.node_ids[i] for i in perm[::-1]],
+        time=ds.time,
+        range=ds.range[:, perm[::-1]][:, :, perm[::-1]],
+        truth=ds.truth[perm[::-1]],
+        configs={"c": (5, 4, 3)},
     )
     res3 = pgp.calibrate(ds3, SMALL, config="c")
     np.testing.assert_allclose(res3.position, res.position[perm[::-1]], atol=1e-9)
@@ -137,10 +182,11 @@ def test_no_recompilation_across_sigma_r_and_tau():
     f = eqx.filter_jit(eqx.debug.assert_max_traces(pgp._filter, max_traces=1))
     outs = []
     for sigma_r, tau in [(0.5, 0.8), (0.3, 0.5), (0.8, 0.95)]:
-        cfg, prm, inp, lp0, _ = prepare(ds, PGPParams(**{**SMALL, "sigma_r": sigma_r, "tau": tau}), None)
+        cfg, prm, inp, lp0, _ = prepare(
+            ds, PGPParams(**{**SMALL, "sigma_r": sigma_r, "tau": tau}), None
+        )
         st, out = f(cfg, prm, inp, lp0)
         outs.append(np.asarray(out.raw))
-    assert eqx.debug.get_num_traces(f) == 1 if hasattr(eqx.debug, "get_num_traces") else True
     assert not np.allclose(outs[0], outs[1], equal_nan=True)  # the numbers did reach the trace
 
 
@@ -171,7 +217,9 @@ def test_snapshots_and_uncertainty_out():
     assert np.all(np.linalg.eigvalsh(res.covariance[3:]) >= -1e-12)
 
 
-@pytest.mark.parametrize("key, value", [("tau", 0.0), ("sigma_r", -1.0), ("update_order", "random"), ("top_k", 0)])
+@pytest.mark.parametrize(
+    "key, value", [("tau", 0.0), ("sigma_r", -1.0), ("update_order", "random"), ("top_k", 0)]
+)
 def test_bad_parameters_are_clear_errors(key, value):
     ds = make_mesh(n=4, k=2)
     with pytest.raises(JaxcalError, match=key):
@@ -183,7 +231,18 @@ def test_cli_calibrate_pgp(tmp_path):
     src = tmp_path / "mesh.h5"
     hdf5.write(src, ds)
     out = tmp_path / "res.h5"
-    proc = run_cli("calibrate", src, "--method", "pgp", "-o", out, "--set", "cell_m=1.0", "--set", "sigma_r=0.4")
+    proc = run_cli(
+        "calibrate",
+        src,
+        "--method",
+        "pgp",
+        "-o",
+        out,
+        "--set",
+        "cell_m=1.0",
+        "--set",
+        "sigma_r=0.4",
+    )
     assert proc.returncode == 0, proc.stderr
     res = hdf5.read(out)
     assert res.method == "pgp" and res.params["sigma_r"] == 0.4 and res.params["top_k"] == 32

@@ -1,22 +1,28 @@
 """Grid machinery of the grid-based Bayesian self-calibration filter (paper 000, Section III).
 
 One square grid of cell centres `(x, y) = ((ix - c) * cell_m, (iy - c) * cell_m)` for
-`ix, iy = 0 .. 2c`, shared by every node, so that the posteriors of all nodes are one batched array of
-shape `(nodes, nx, ny)` with `nx = ny = 2c + 1`; the origin (a0) is the centre cell. Per-node regions are
+`ix, iy = 0 .. 2c`, shared by every node, so that the posteriors of all nodes are one batched array
+of
+shape `(nodes, nx, ny)` with `nx = ny = 2c + 1`; the origin (a0) is the centre cell. Per-node
+regions are
 log-masks on that grid (eq. 5-6):
 
 - a0: the origin cell only (no uncertainty, Section III-A1);
-- a1: the cells on the positive x axis, `iy = c, ix >= c`: this row *is* the 1-D histogram of eq. (5)
+- a1: the cells on the positive x axis, `iy = c, ix >= c`: this row *is* the 1-D histogram of eq.
+(5)
   over `[0, d_max]` with `d_max = c * cell_m` and bins of `cell_m` (the 2-D motion and likelihood
   restricted to the row reduce exactly to the 1-D ones);
 - a2: the half plane `y >= 0` (eq. 6); every other node: the whole grid.
 
-Extent rule (`extent_radius`): the half-width R is the largest shortest-path distance from a0 through
+Extent rule (`extent_radius`): the half-width R is the largest shortest-path distance from a0
+through
 the graph of per-pair median ranges (so every node a chain of ranges can place is covered, and a few
 outliers do not blow the grid up), plus `margin_m`, capped by `extent_m`.
 
-The per-item kernels here (one node, one pair) are plain functions; the filter in `pgp.py` vmaps them.
-`node_loglik` is the one hot function (eq. 11); a faster implementation (FFT ring convolution, windows)
+The per-item kernels here (one node, one pair) are plain functions; the filter in `pgp.py` vmaps
+them.
+`node_loglik` is the one hot function (eq. 11); a faster implementation (FFT ring convolution,
+windows)
 can replace it behind the same signature.
 """
 
@@ -69,7 +75,9 @@ class Grid(eqx.Module):
 
     def axis(self, dtype=None) -> Float[Array, " n"]:
         """(n,) cell-centre coordinates along one axis [m]."""
-        return (jnp.arange(self.n_side, dtype=dtype or jnp.result_type(float)) - self.n_half) * self.cell_m
+        return (
+            jnp.arange(self.n_side, dtype=dtype or jnp.result_type(float)) - self.n_half
+        ) * self.cell_m
 
     def cells(self, dtype=None) -> Float[Array, "cells 2"]:
         """(nx * ny, 2) cell centres [m], flat index `ix * ny + iy`."""
@@ -101,7 +109,11 @@ def extent_radius(ranges: np.ndarray, a0: int, margin_m: float, cap_m: float) ->
 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            med = np.nanmedian(ranges, axis=0) if ranges.shape[0] else np.full(ranges.shape[1:], np.nan)
+            med = (
+                np.nanmedian(ranges, axis=0)
+                if ranges.shape[0]
+                else np.full(ranges.shape[1:], np.nan)
+            )
     n = med.shape[0]
     dist = np.where(np.isfinite(med), med, np.inf)
     np.fill_diagonal(dist, 0.0)
@@ -114,7 +126,7 @@ def extent_radius(ranges: np.ndarray, a0: int, margin_m: float, cap_m: float) ->
 
 
 def region_masks(grid: Grid, n_nodes: int) -> Bool[np.ndarray, "nodes nx ny"]:
-    """(N, nx, ny) allowed cells per node, nodes ordered (a0, a1, a2, others): see the module docstring."""
+    """(N, nx, ny) allowed cells per node (order a0, a1, a2, others); see the module doc."""
     c, n = grid.n_half, grid.n_side
     m = np.ones((n_nodes, n, n), dtype=bool)
     m[0] = False
@@ -125,7 +137,7 @@ def region_masks(grid: Grid, n_nodes: int) -> Bool[np.ndarray, "nodes nx ny"]:
     return m
 
 
-def safe_norm(v: Float[Array, "... 2"]) -> Float[Array, "..."]:
+def safe_norm(v: Float[Array, "... 2"]) -> Float[Array, ...]:
     """Euclidean norm over the last axis with a finite gradient at zero."""
     d2 = jnp.sum(v * v, axis=-1)
     pos = d2 > 0
@@ -143,7 +155,8 @@ def top_hypotheses(
     """Position hypotheses of one node, eq. (10): its most probable cells up to mass `tau`.
 
     Cells are taken in order of decreasing probability while the mass taken *before* a cell is below
-    `tau` (so the set is the smallest reaching `tau`), at most `n_hyp` of them; weights are renormalised
+    `tau` (so the set is the smallest reaching `tau`), at most `n_hyp` of them; weights are
+    renormalised
     over the set.
 
     Args:
@@ -173,7 +186,8 @@ def predict(
 
     `log pbar(g_i) = logsumexp_{m in K} [log p_m - (|g_i - g_m| - v dt)^2 / (2 sigma_v^2)]`; the
     Gaussian's constant is dropped (it cancels in the normalisation of eq. 12). For `v dt = 0` the
-    kernel is separable in x and y and the sum is one small matrix product (`predict_static`), else it
+    kernel is separable in x and y and the sum is one small matrix product (`predict_static`), else
+    it
     is evaluated directly (`predict_direct`).
 
     Args:
@@ -194,14 +208,20 @@ def predict_direct(logp, cells, top_k: int, step_m, sigma_v):
     """Eq. (7)-(8) evaluated directly: (C, K) transition terms, any `v dt`."""
     vals, idx = jax.lax.top_k(logp, top_k)
     src = cells[idx]
-    d = safe_norm(jnp.stack([cells[None, :, 0] - src[:, 0, None], cells[None, :, 1] - src[:, 1, None]], axis=-1))
+    d = safe_norm(
+        jnp.stack(
+            [cells[None, :, 0] - src[:, 0, None], cells[None, :, 1] - src[:, 1, None]], axis=-1
+        )
+    )
     logt = -0.5 * jnp.square((d - step_m) / sigma_v)
     return jax.nn.logsumexp(vals[:, None] + logt, axis=0)
 
 
 def predict_static(logp, cells, top_k: int, sigma_v):
-    """Eq. (7)-(8) for `v dt = 0`: `exp(-|d|^2 / 2s^2) = exp(-dx^2 / 2s^2) exp(-dy^2 / 2s^2)`, so the sum over
-    the K sources is `Ex diag(p) Ey^T`, with each row and column shifted by its largest log term so the
+    """Eq. (7)-(8) for `v dt = 0`: `exp(-|d|^2 / 2s^2) = exp(-dx^2 / 2s^2) exp(-dy^2 / 2s^2)`, so
+    the sum over
+    the K sources is `Ex diag(p) Ey^T`, with each row and column shifted by its largest log term so
+    the
     product stays in range. Where even that underflows (cells whose prior is below ~1e-30 of the
     bound), the bound times the smallest normal number is used: finite, and negligible."""
     n = int(round(math.sqrt(cells.shape[0])))
@@ -229,9 +249,11 @@ def pair_loglik(
     sigma: Float[Array, ""],
     p_out: Float[Array, ""],
 ) -> Float[Array, " cells"]:
-    """Log of one factor of eq. (11): `log sum_l w_l exp(-(|g - g_l| - z)^2 / (2 sigma^2))` at every cell.
+    """Log of one factor of eq. (11): `log sum_l w_l exp(-(|g - g_l| - z)^2 / (2 sigma^2))` at
+    every cell.
 
-    With `p_out > 0` the factor is mixed with a constant floor, `(1 - p_out) * factor + p_out` (a robust
+    With `p_out > 0` the factor is mixed with a constant floor, `(1 - p_out) * factor + p_out` (a
+    robust
     option for outlier ranges; `p_out = 0` is the paper's eq. 11).
 
     Args:
@@ -264,14 +286,17 @@ def node_loglik(
 
     Args:
         cells: (C, 2) [m]. hyp_pos, hyp_logw: (N, H, 2), (N, H) hypotheses of every node.
-        hyp_sigma: (N,) range std to use with each neighbour [m]. z_i: (N,) ranges to the neighbours [m]
+        hyp_sigma: (N,) range std to use with each neighbour [m]. z_i: (N,) ranges to the
+        neighbours [m]
             (NaN missing). use_i: (N,) which neighbours contribute. p_out: see `pair_loglik`.
 
     Returns:
         (C,) log likelihood (0 where no neighbour contributes).
     """
     zs = jnp.where(use_i, z_i, 0.0)
-    per = jax.vmap(pair_loglik, in_axes=(None, 0, 0, 0, 0, None))(cells, hyp_pos, hyp_logw, zs, hyp_sigma, p_out)
+    per = jax.vmap(pair_loglik, in_axes=(None, 0, 0, 0, 0, None))(
+        cells, hyp_pos, hyp_logw, zs, hyp_sigma, p_out
+    )
     return jnp.sum(jnp.where(use_i[:, None], per, 0.0), axis=0)
 
 
@@ -284,7 +309,8 @@ def node_loglik_sparse(
     use_i: Bool[Array, " nodes"],
     p_out: Float[Array, ""],
 ) -> Float[Array, " cells"]:
-    """`node_loglik` with the same arguments and result, skipping the work of neighbours without a range
+    """`node_loglik` with the same arguments and result, skipping the work of neighbours without a
+    range
     (`lax.cond` in a loop over neighbours: cost ~ used pairs x hypotheses x cells). Must not be
     `vmap`ped (a batched `cond` evaluates both branches); map it over nodes with `lax.map`."""
     n = hyp_logw.shape[0]
@@ -301,7 +327,8 @@ def node_loglik_sparse(
 def window_estimate(
     logp: Float[Array, " cells"], cells: Float[Array, "cells 2"], r_est: Float[Array, ""]
 ) -> Float[Array, " 2"]:
-    """Position estimate eq. (13): posterior-weighted mean of the cells closer than `r_est` to the MLE cell.
+    """Position estimate eq. (13): posterior-weighted mean of the cells closer than `r_est` to the
+    MLE cell.
 
     The MLE cell itself is always included (so `r_est` below one cell gives the MLE cell).
     """
@@ -312,7 +339,9 @@ def window_estimate(
     return w @ cells
 
 
-def mean_cov(logp: Float[Array, " cells"], cells: Float[Array, "cells 2"]) -> tuple[Float[Array, " 2"], Float[Array, "2 2"]]:
+def mean_cov(
+    logp: Float[Array, " cells"], cells: Float[Array, "cells 2"]
+) -> tuple[Float[Array, " 2"], Float[Array, "2 2"]]:
     """Mean [m] and covariance [m^2] of a (normalised) grid posterior over the whole grid."""
     w = jnp.exp(logp - jax.nn.logsumexp(logp))
     mu = w @ cells
@@ -320,6 +349,6 @@ def mean_cov(logp: Float[Array, " cells"], cells: Float[Array, "cells 2"]) -> tu
     return mu, (dc * w[:, None]).T @ dc
 
 
-def flat_index(ix: Int[Array, "..."], iy: Int[Array, "..."], grid: Grid) -> Int[Array, "..."]:
+def flat_index(ix: Int[Array, ...], iy: Int[Array, ...], grid: Grid) -> Int[Array, ...]:
     """Flat cell index of `(ix, iy)`."""
     return ix * grid.n_side + iy

@@ -1,10 +1,12 @@
 """Parametric baseline of paper 000, eq. (9): the grid filter with point-estimate neighbours.
 
 Same grid, regions, motion update, estimate and parameters as PGP (`pgp.py`), but each neighbour j
-enters the likelihood of eq. (11) as ONE hypothesis, its eq. (13) estimate, with the range std widened
+enters the likelihood of eq. (11) as ONE hypothesis, its eq. (13) estimate, with the range std
+widened
 by its posterior covariance: `sigma_ij = sigma_r + sqrt(tr P_j)` (eq. 9). The receiver's own
 uncertainty is its grid, so its trace is not added again. `P_j` is the covariance of j's whole grid
-posterior (so a multimodal neighbour gets a wide, not a wrong, constraint). `tau` and `max_hyp` are unused.
+posterior (so a multimodal neighbour gets a wide, not a wrong, constraint). `tau` and `max_hyp` are
+unused.
 """
 
 from __future__ import annotations

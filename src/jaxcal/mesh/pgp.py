@@ -1,32 +1,43 @@
 """PGP: the grid-based Bayesian self-calibration filter of paper 000 (Section III, eq. 3-14).
 
-Nodes are reordered so that the configuration's (a0, a1, a2) come first. Every node has a log posterior
-on one common square grid (`grid.py`), all of them one batched array `(nodes, nx, ny)`; a0 is the origin
+Nodes are reordered so that the configuration's (a0, a1, a2) come first. Every node has a log
+posterior
+on one common square grid (`grid.py`), all of them one batched array `(nodes, nx, ny)`; a0 is the
+origin
 cell, a1's region is the positive x axis (the 1-D histogram of eq. 5), a2's the half plane y >= 0
 (eq. 6). Per epoch and node: motion update over the `top_k` most probable cells (eq. 7-8), the
-hypothesis-weighted likelihood of every neighbour with a range (eq. 10-11), the posterior in log space
-(eq. 12), the estimate within `r_est` of the MLE cell (eq. 13), optional smoothing (eq. 14). Epochs run
+hypothesis-weighted likelihood of every neighbour with a range (eq. 10-11), the posterior in log
+space
+(eq. 12), the estimate within `r_est` of the MLE cell (eq. 13), optional smoothing (eq. 14). Epochs
+run
 in one `lax.scan` inside one jitted function; numbers are arrays, so changing them never recompiles.
 
 Choices the paper leaves open (documented here, recorded in the result's `params`):
 
 - Ranges: the mean of i->j and j->i when both exist, else the one that exists; missing = no factor.
-- Neighbours: a1 uses a0 only (eq. 5), a2 uses a0 and a1 (eq. 6; `a2_all=True` lets it use every node),
-  the others every node. A neighbour contributes hypotheses only once it is *localised*: it has received
+- Neighbours: a1 uses a0 only (eq. 5), a2 uses a0 and a1 (eq. 6; `a2_all=True` lets it use every
+node),
+  the others every node. A neighbour contributes hypotheses only once it is *localised*: it has
+  received
   ranges from at least `min_refs` distinct localised neighbours (a1: a0; a2: a0 and a1), so a node
   whose posterior is still a ring around one reference does not spread a random arc of that ring as
   hypotheses. A node's estimate is reported (available) from the epoch it is localised.
 - Motion update only for localised nodes; before that the posterior accumulates likelihoods exactly
   (a static prior), because truncating a ring to `top_k` cells would lock in a random arc.
 - Hypotheses: the smallest set of most probable cells holding mass `tau`, capped at `max_hyp` cells.
-- `sigma_v` is the std of the transition distance of eq. (8) in metres per epoch; `v * dt` with dt the
+- `sigma_v` is the std of the transition distance of eq. (8) in metres per epoch; `v * dt` with dt
+the
   epoch time step.
 - `update_order`: "jacobi" (default) updates every node from the previous epoch's posteriors: the
-  result does not depend on node labels. "gauss-seidel" updates a1, a2, then the others in index order,
-  each using the newest posteriors of the nodes before it (order-dependent, localises in fewer epochs).
+  result does not depend on node labels. "gauss-seidel" updates a1, a2, then the others in index
+  order,
+  each using the newest posteriors of the nodes before it (order-dependent, localises in fewer
+  epochs).
 
-Defaults (`PGPParams`): 0.5 m cells and at most 8 hypotheses, so that the direct evaluation of eq. (11)
-finishes the 12-node, 2,000-epoch torgau scenario on a 2-core CPU (a faster likelihood is a later issue).
+Defaults (`PGPParams`): 0.5 m cells and at most 8 hypotheses, so that the direct evaluation of eq.
+(11)
+finishes the 12-node, 2,000-epoch torgau scenario on a 2-core CPU (a faster likelihood is a later
+issue).
 """
 
 from __future__ import annotations
@@ -51,7 +62,8 @@ class PGPParams(eqx.Module):
     """Parameters of the PGP filter and of the parametric baseline (defaults documented per field).
 
     Attributes:
-        cell_m: grid cell size [m] (0.5: fine enough for sub-metre results, coarse enough to finish).
+        cell_m: grid cell size [m] (0.5: fine enough for sub-metre results, coarse enough to
+        finish).
         extent_m: cap on the grid half-width R [m] (R from `extent_radius`, see `grid.py`).
         margin_m: added to the farthest chain of median ranges from a0 when sizing the grid [m].
         top_k: K of eq. (7), cells carried through the motion update.
@@ -61,18 +73,23 @@ class PGPParams(eqx.Module):
         r_est: radius of the estimation window around the MLE cell, eq. (13) [m].
         sigma_r: ranging standard deviation [m] (LOS 1-sigma quantile of the paper's Table I).
         v: expected node speed [m/s] (0: static nodes).
-        sigma_v: transition standard deviation of eq. (8) [m per epoch]; > 0 lets the filter recover.
+        sigma_v: transition standard deviation of eq. (8) [m per epoch]; > 0 lets the filter
+        recover.
         alpha: smoothing factor of eq. (14) in (0, 1].
-        smoothing: "none", "ema" or "median-ema" (median of the last `median_window` estimates, then EMA).
+        smoothing: "none", "ema" or "median-ema" (median of the last `median_window` estimates,
+        then EMA).
         median_window: window of the median in "median-ema" [epochs].
         update_order: "jacobi" or "gauss-seidel" (see the module docstring).
         min_refs: localised neighbours a node must have heard before it counts as localised.
         a2_all: let a2 use every localised node, not only a0 and a1 (eq. 6 uses a0 and a1).
         p_out: robust floor of each likelihood factor, `(1 - p_out) * eq.11-factor + p_out` (0: the
-            paper's eq. 11 exactly). Default 0.05: with heavy-tailed NLOS ranges a pure Gaussian factor
-            lets one outlier ring outvote the others (simulated torgau conf1, 200 epochs: RMSE 2.97 m at
+            paper's eq. 11 exactly). Default 0.05: with heavy-tailed NLOS ranges a pure Gaussian
+            factor
+            lets one outlier ring outvote the others (simulated torgau conf1, 200 epochs: RMSE 2.97
+            m at
             0 and 2.58 m at sigma_r = 1, 0.29 m at p_out = 0.05).
-        likelihood: "sparse" (skip neighbours without a range and hypotheses outside `tau`; loops) or
+        likelihood: "sparse" (skip neighbours without a range and hypotheses outside `tau`; loops)
+        or
             "dense" (evaluate every pair and hypothesis, vmapped, then mask): same answer.
     """
 
@@ -103,7 +120,10 @@ def _validate(p: PGPParams) -> None:
 
     pos = ("cell_m", "extent_m", "sigma_r", "sigma_v", "r_est")
     for k in pos:
-        need(math.isfinite(getattr(p, k)) and getattr(p, k) > 0, f"{k}: must be a positive number, got {getattr(p, k)!r}")
+        need(
+            math.isfinite(getattr(p, k)) and getattr(p, k) > 0,
+            f"{k}: must be a positive number, got {getattr(p, k)!r}",
+        )
     need(p.margin_m >= 0, f"margin_m: must be >= 0, got {p.margin_m!r}")
     need(0 < p.tau <= 1, f"tau: must be in (0, 1], got {p.tau!r}")
     need(0 < p.alpha <= 1, f"alpha: must be in (0, 1], got {p.alpha!r}")
@@ -111,11 +131,19 @@ def _validate(p: PGPParams) -> None:
     need(p.v >= 0, f"v: must be >= 0, got {p.v!r}")
     for k in ("top_k", "max_hyp", "median_window", "min_refs"):
         need(getattr(p, k) >= 1, f"{k}: must be an integer >= 1, got {getattr(p, k)!r}")
-    need(p.smoothing in ("none", "ema", "median-ema"), f"smoothing: one of none, ema, median-ema; got {p.smoothing!r}")
+    need(
+        p.smoothing in ("none", "ema", "median-ema"),
+        f"smoothing: one of none, ema, median-ema; got {p.smoothing!r}",
+    )
     need(p.likelihood in ("sparse", "dense"), f"likelihood: sparse or dense; got {p.likelihood!r}")
-    need(p.update_order in ("jacobi", "gauss-seidel"), f"update_order: jacobi or gauss-seidel; got {p.update_order!r}")
+    need(
+        p.update_order in ("jacobi", "gauss-seidel"),
+        f"update_order: jacobi or gauss-seidel; got {p.update_order!r}",
+    )
     if p.extent_m / p.cell_m > 2000:
-        raise JaxcalError(f"parameter cell_m: grid of {2 * p.extent_m / p.cell_m:.0f} cells a side is too large")
+        raise JaxcalError(
+            f"parameter cell_m: grid of {2 * p.extent_m / p.cell_m:.0f} cells a side is too large"
+        )
 
 
 class FilterConfig(eqx.Module):
@@ -181,7 +209,8 @@ class PGPInfo(eqx.Module):
         axis_m: (n,) cell-centre coordinates of both grid axes [m] (config frame).
         posterior: (N, n, n) final posterior probabilities, `posterior[i, ix, iy]` at
             `(axis_m[ix], axis_m[iy])`.
-        snapshot_epochs: (S,) epochs of `snapshots`. snapshots: (S, N, n, n) posteriors at those epochs.
+        snapshot_epochs: (S,) epochs of `snapshots`. snapshots: (S, N, n, n) posteriors at those
+        epochs.
         log_mass: (K, N) log of the posterior mass after each epoch's update (0 up to rounding).
         raw_track: (K, N, 2) eq. (13) estimates before smoothing [m].
         localised: (N,) whether each node became localised.
@@ -197,7 +226,7 @@ class PGPInfo(eqx.Module):
 
 
 def symmetric_ranges(r: np.ndarray) -> np.ndarray:
-    """(K, N, N) ranges -> symmetric: mean of i->j and j->i where both exist, else the one that exists."""
+    """(K, N, N) ranges -> symmetric: mean of i->j and j->i where both exist, else the one there."""
     rt = np.swapaxes(r, 1, 2)
     both = np.isfinite(r) & np.isfinite(rt)
     out = np.where(both, 0.5 * (r + rt), np.where(np.isfinite(r), r, rt))
@@ -210,10 +239,14 @@ def _localised(heard: Bool[Array, "n n"], need: Float[Array, " n"]) -> Bool[Arra
     return jnp.sum(heard, axis=1) >= need
 
 
-def _hypotheses(cfg: FilterConfig, prm: FilterParams, logp: Float[Array, "n c"], cells: Float[Array, "c 2"]):
-    """(N, H, 2), (N, H), (N,) hypotheses of every node: eq. (10) for PGP, point + eq. (9) for parametric."""
+def _hypotheses(
+    cfg: FilterConfig, prm: FilterParams, logp: Float[Array, "n c"], cells: Float[Array, "c 2"]
+):
+    """(N, H, 2), (N, H), (N,) hypotheses of all nodes: eq. (10), or eq. (9) for parametric."""
     if cfg.mode == "pgp":
-        pos, lw = jax.vmap(G.top_hypotheses, in_axes=(0, None, None, None))(logp, cells, cfg.n_hyp, prm.tau)
+        pos, lw = jax.vmap(G.top_hypotheses, in_axes=(0, None, None, None))(
+            logp, cells, cfg.n_hyp, prm.tau
+        )
         sig = jnp.broadcast_to(prm.sigma_r, logp.shape[:1])
         return pos, lw, sig
     est = jax.vmap(G.window_estimate, in_axes=(0, None, None))(logp, cells, prm.r_est)
@@ -225,9 +258,12 @@ def _hypotheses(cfg: FilterConfig, prm: FilterParams, logp: Float[Array, "n c"],
 
 
 def _node_update(cfg, prm, cells, logp_i, mask_i, loc_i, hyps, z_i, use_i, step_m):
-    """One node's epoch: motion update (if localised), eq. (11) likelihood, eq. (12) posterior; (C,)."""
+    """One node's epoch: motion update (if localised), eq. (11), eq. (12) posterior (C,)."""
     prior = jax.lax.cond(
-        loc_i, lambda lp: G.predict(lp, cells, cfg.top_k, step_m, prm.sigma_v), lambda lp: lp, logp_i
+        loc_i,
+        lambda lp: G.predict(lp, cells, cfg.top_k, step_m, prm.sigma_v),
+        lambda lp: lp,
+        logp_i,
     )
     lik = G.node_loglik_sparse if cfg.likelihood == "sparse" else G.node_loglik
     ll = lik(cells, hyps[0], hyps[1], hyps[2], z_i, use_i, prm.p_out)
@@ -236,7 +272,7 @@ def _node_update(cfg, prm, cells, logp_i, mask_i, loc_i, hyps, z_i, use_i, step_
 
 
 def _smooth(cfg, prm, st: FilterState, raw, loc):
-    """Eq. (14) for nodes with an estimate this epoch; returns (estimate, new smooth, started, buf)."""
+    """Eq. (14) for nodes with an estimate this epoch; returns (estimate, smooth, started, buf)."""
     if cfg.smoothing == "none":
         return raw, st.smooth, st.started, st.buf
     buf = st.buf
@@ -251,18 +287,28 @@ def _smooth(cfg, prm, st: FilterState, raw, loc):
     return smooth, smooth, started, buf
 
 
-def _filter(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, logpost0: Float[Array, "n nx ny"]):
-    """The whole recursive filter: `lax.scan` over epochs. Returns (final FilterState, FilterOut per epoch)."""
+def _filter(
+    cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, logpost0: Float[Array, "n nx ny"]
+):
+    """The recursive filter: `lax.scan` over epochs -> (final FilterState, per-epoch FilterOut)."""
     n = logpost0.shape[0]
     cells = cfg.grid.cells(logpost0.dtype)
     c = cells.shape[0]
     mask = inp.mask.reshape(n, c)
     nan2 = jnp.full((n, 2), jnp.nan, logpost0.dtype)
+
     def upd(lp, loc, hyps, z, use, step_m):
         args = (lp, mask, loc, z, use)
-        if cfg.likelihood == "sparse":  # lax.map: a vmapped cond would evaluate the skipped work too
-            return jax.lax.map(lambda a: _node_update(cfg, prm, cells, a[0], a[1], a[2], hyps, a[3], a[4], step_m), args)
-        return jax.vmap(lambda *a: _node_update(cfg, prm, cells, a[0], a[1], a[2], hyps, a[3], a[4], step_m))(*args)
+        if (
+            cfg.likelihood == "sparse"
+        ):  # lax.map: a vmapped cond would evaluate the skipped work too
+            return jax.lax.map(
+                lambda a: _node_update(cfg, prm, cells, a[0], a[1], a[2], hyps, a[3], a[4], step_m),
+                args,
+            )
+        return jax.vmap(
+            lambda *a: _node_update(cfg, prm, cells, a[0], a[1], a[2], hyps, a[3], a[4], step_m)
+        )(*args)
 
     def epoch(st: FilterState, x):
         z, dt, k = x
@@ -282,11 +328,13 @@ def _filter(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, logpost0: F
                 lp, heard, hyps = carry
                 loc = _localised(heard, inp.need)
                 use_i = inp.allowed[i] & jnp.isfinite(z[i]) & loc
-                new = _node_update(cfg, prm, cells, lp[i], mask[i], loc[i], hyps, z[i], use_i, step_m)
+                new = _node_update(
+                    cfg, prm, cells, lp[i], mask[i], loc[i], hyps, z[i], use_i, step_m
+                )
                 lp = lp.at[i].set(new)
                 heard = heard.at[i].set(heard[i] | use_i)
                 h1 = _hypotheses(cfg, prm, new[None], cells)
-                hyps = tuple(h.at[i].set(h1_[0]) for h, h1_ in zip(hyps, h1))
+                hyps = tuple(h.at[i].set(h1_[0]) for h, h1_ in zip(hyps, h1, strict=True))
                 return (lp, heard, hyps), None
 
             (lp, heard, _), _ = jax.lax.scan(one, (lp, heard, hyps), jnp.arange(n))
@@ -365,10 +413,19 @@ def prepare(
         n_snap=int(snaps.size),
         likelihood=params.likelihood,
     )
-    prm = FilterParams(*(jnp.asarray(getattr(params, f), ftype) for f in ("tau", "r_est", "sigma_r", "v", "sigma_v", "alpha", "p_out")))
+    prm = FilterParams(
+        *(
+            jnp.asarray(getattr(params, f), ftype)
+            for f in ("tau", "r_est", "sigma_r", "v", "sigma_v", "alpha", "p_out")
+        )
+    )
     inp = FilterInputs(
-        z=jnp.asarray(z, ftype), dt=jnp.asarray(dt, ftype), mask=jnp.asarray(mask),
-        allowed=jnp.asarray(allowed), need=jnp.asarray(need, ftype), snap_at=jnp.asarray(snaps, ftype),
+        z=jnp.asarray(z, ftype),
+        dt=jnp.asarray(dt, ftype),
+        mask=jnp.asarray(mask),
+        allowed=jnp.asarray(allowed),
+        need=jnp.asarray(need, ftype),
+        snap_at=jnp.asarray(snaps, ftype),
     )
     logpost0 = jnp.where(inp.mask, 0.0, -jnp.inf).astype(ftype)
     logpost0 = logpost0 - jax.nn.logsumexp(logpost0, axis=(1, 2), keepdims=True)
@@ -393,7 +450,8 @@ def run_pgp(
         snapshot_epochs: epochs whose posterior grids are returned in `PGPInfo.snapshots`.
 
     Returns:
-        (Result, PGPInfo): positions, covariance and per-epoch track in the configuration frame, and the
+        (Result, PGPInfo): positions, covariance and per-epoch track in the configuration frame,
+        and the
         posterior grids in the dataset's node order.
     """
     if not isinstance(params, PGPParams):
@@ -448,5 +506,5 @@ def _software() -> str:
 
 
 def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> Result:
-    """`--method pgp`: the grid-based Bayesian filter with hypothesis-weighted likelihoods (eq. 3-14)."""
+    """`--method pgp`: the grid-based Bayesian filter with hypothesis likelihoods (eq. 3-14)."""
     return run_pgp(dataset, params, config, mode="pgp")[0]

@@ -1,6 +1,7 @@
 """Slow, plain NumPy reference of the PGP filter (paper 000, eq. 5-13), for tests only.
 
-Written to be obviously correct rather than fast: linear probabilities, Python loops over nodes, cells
+Written to be obviously correct rather than fast: linear probabilities, Python loops over nodes,
+cells
 and hypotheses, a1 as a genuine 1-D histogram over `[0, d_max]` (eq. 5), a2 on the cells with y >= 0
 (eq. 6), every other node on the whole grid. It follows the conventions documented in `pgp.py`
 (localisation rule, neighbour sets, update orders, hypothesis truncation, eq. 9 for "parametric").
@@ -47,13 +48,16 @@ def run_reference(
         Other arguments: as in `pgp.PGPParams`.
 
     Returns:
-        dict with `posterior` (N, n, n) final probabilities on the common grid (a1 on its row, a0 on the
-        origin cell), `raw` (K, N, 2) eq. (13) estimates (NaN when not localised), `mass` (K, N) sums.
+        dict with `posterior` (N, n, n) final probabilities on the common grid (a1 on its row, a0
+        on the
+        origin cell), `raw` (K, N, 2) eq. (13) estimates (NaN when not localised), `mass` (K, N)
+        sums.
     """
     k_epochs, n = z.shape[0], z.shape[1]
     side = 2 * n_half + 1
     axis = [(i - n_half) * cell_m for i in range(side)]
-    # regions: list of (flat index, x, y) per node; flat index ix * side + iy orders ties like lax.top_k
+    # regions: list of (flat index, x, y) per node; flat index ix * side + iy orders ties like
+    # lax.top_k
     regions = []
     for i in range(n):
         cells = []
@@ -62,7 +66,9 @@ def run_reference(
                 x, y = axis[ix], axis[iy]
                 if i == 0 and not (ix == n_half and iy == n_half):
                     continue
-                if i == 1 and not (iy == n_half and ix >= n_half):  # the 1-D histogram bins h = 0..d_max
+                if i == 1 and not (
+                    iy == n_half and ix >= n_half
+                ):  # the 1-D histogram bins h = 0..d_max
                     continue
                 if i == 2 and iy < n_half:
                     continue
