@@ -20,7 +20,20 @@ from jaxtyping import Array, Bool, Float
 from jaxcal.data import Result
 from jaxcal.params import as_dict, with_overrides
 
-__all__ = ["LSParams", "multilaterate", "multilaterate_all", "calibrate"]
+__all__ = ["LSParams", "multilaterate", "multilaterate_all", "calibrate", "in_float64"]
+
+
+def in_float64(fn):
+    """Run a calibration entry point with 64-bit JAX arrays (scoped, not the global config): the
+    normal equations and GP Cholesky factors need it; results are float64 in the file anyway."""
+    import functools
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with jax.enable_x64(True):
+            return fn(*args, **kwargs)
+
+    return wrapper
 
 
 class LSParams(eqx.Module):
@@ -93,6 +106,7 @@ def multilaterate_all(pos, rng, mask, planar_tol_m: float = 0.3, side: float = 1
     return jax.vmap(lambda p, r, m: multilaterate(p, r, m, planar_tol_m, side))(pos, rng, mask)
 
 
+@in_float64
 def calibrate(dataset, params=None, config=None) -> Result:
     """`--method ls`: linear least-squares multilateration of every anchor (frame `world`).
 

@@ -19,7 +19,7 @@ import optimistix as optx
 from jaxcal.data import Result
 from jaxcal.errors import JaxcalError
 from jaxcal.params import with_overrides
-from jaxcal.trajectory.ls import finish, multilaterate
+from jaxcal.trajectory.ls import finish, in_float64, multilaterate
 
 __all__ = ["NLSParams", "solve_anchor", "calibrate"]
 
@@ -128,6 +128,7 @@ def _solve_all(pos, rng, mask, p: NLSParams):
     return jax.vmap(one)(pos, rng, mask)
 
 
+@in_float64
 def calibrate(dataset, params=None, config=None) -> Result:
     """`--method nls`: robust NLS with a range bias per anchor, initialised from `ls` (frame `world`).
 

@@ -1,7 +1,8 @@
 """Tag positions at range time (paper 001, Sec. III-B) and per-anchor grouping of the ranges.
 
 Positions come from a cumulative cubic B-spline fitted to the pose stream (`bspline.py`); orientations
-are interpolated by slerp between the two neighbouring poses (the paper omits R(t) in the calibration;
+are interpolated by slerp between the two neighbouring poses. Between two consecutive poses with
+identical positions the platform is taken as standing still (exact position, no spline ringing) (the paper omits R(t) in the calibration;
 we need it only to rotate each tag's lever arm into the world frame). Ranges outside the pose time
 span, or inside a gap of the pose stream longer than `max_gap_s`, are dropped and counted.
 
@@ -82,11 +83,12 @@ class PoseModel(eqx.Module):
 
     Attributes:
         spline: fitted B-spline pieces of the positions.
-        pose_time: (P,) [s]. orientation: (P, 4) unit quaternions (x, y, z, w).
+        pose_time: (P,) [s]. position: (P, 3) [m]. orientation: (P, 4) unit quaternions (x, y, z, w).
     """
 
     spline: bspline.SplinePieces
     pose_time: Float[Array, " p"]
+    position: Float[Array, "p 3"]
     orientation: Float[Array, "p 4"]
 
 
@@ -103,7 +105,7 @@ def fit_poses(ds, order: int = 4, knot_dt_s: float = 0.0, max_gap_s: float = 0.0
     q = ds.pose_orientation
     if q is None:
         q = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (ds.pose_time.shape[0], 1))
-    return PoseModel(spline, jnp.asarray(ds.pose_time), jnp.asarray(q))
+    return PoseModel(spline, jnp.asarray(ds.pose_time), jnp.asarray(ds.pose_position), jnp.asarray(q))
 
 
 def tag_positions(
@@ -119,6 +121,14 @@ def tag_positions(
     """
     t = jnp.asarray(range_time) + offset_s
     p = bspline.evaluate(model.spline, t)
+    # Between two poses at the same position the platform stands still (e.g. dwells at surveyed
+    # points, two poses per dwell): take that position exactly rather than the spline, which rings
+    # on such step-like streams.
+    n = model.pose_time.shape[0]
+    i = jnp.clip(jnp.searchsorted(model.pose_time, t, side="right") - 1, 0, n - 2)
+    pa, pb = model.position[i], model.position[i + 1]
+    static = jnp.all(pa == pb, axis=-1) & jnp.isfinite(p).all(axis=-1)
+    p = jnp.where(static[:, None], pa, p)
     q = slerp_orientation(model.pose_time, model.orientation, t)
     return p + quat_rotate(q, jnp.asarray(lever_arm)[jnp.asarray(range_tag)])
 

@@ -1,0 +1,439 @@
+"""Gaussian-process anchor calibration (paper 001, Sec. III-C), vectorised over anchors.
+
+Per anchor, a GP regresses a target derived from the range over the tag positions:
+
+- `target="range"`: the range itself (the paper's text), with a constant mean equal to the mean of the
+  training ranges, so that far from the data the prediction reverts to a typical (large) range and
+  the search for the *smallest* predicted range stays near the data;
+- `target="inv-log"`: y = 1 / log10(sqrt(r) + 1) with a zero mean (the public code): large near the
+  anchor, decaying to the prior mean 0 far away; the search looks for the *largest* prediction.
+
+Kernel: Matern with smoothness `nu` plus white noise. nu = 1/2, 3/2, 5/2 use their closed forms; any
+other non-integer nu (e.g. the public code's 5/3) uses the general form
+`k(r) = s^2 2^(1-nu) / Gamma(nu) z^nu K_nu(z)`, `z = sqrt(2 nu) r / l`, with
+`K_nu = pi / (2 sin(nu pi)) (I_-nu - I_nu)` summed as two power series in z^2 (no square root, smooth
+at r = 0) for z <= 9 and the large-z asymptotic expansion beyond (see `matern`). The cancellation of
+the series costs at most ~1e-10 absolute in k / s^2, below the jitter.
+
+Hyperparameters (log length scale, log signal variance, log noise variance) maximise the marginal
+likelihood: `optx.minimise` with BFGS on the negative log marginal likelihood, per anchor, vmapped.
+
+Anchor search (the paper's iterative cuboid search): a regular G^3 grid in a cuboid around the data
+(bounding box of the anchor's tag positions plus `margin_m`); the `top_k` (10) best grid samples are
+averaged, the cuboid is shrunk by `shrink` around that average, and this repeats until the half size
+is below `tol_m` (a static number of rounds, `lax.scan`). When an anchor's tag positions are planar
+(z spread < `planar_tol_m`), z is not observable from positions in the plane: the search runs in the
+plane and the height above it is the predicted range at the found point (side `side`).
+
+Large recordings: the training set of each anchor is a stratified subsample by measured range
+(`n_bins` equal-width range bins, equal quotas, leftovers filled at random), at most `n_train` ranges
+(the paper's "layered random sampling"). With `stages=2` (default) a second GP is fitted to the
+`n_train` shortest ranges of the anchor and searched in a cuboid around the first estimate (the
+paper's "first fitting initial points at a coarse scale", then refining). The cost of this in accuracy is measured in
+benchmarks/trajectory_gp.py. No inducing points.
+
+Covariance of an estimate: the sample covariance of the top-k samples of the last round plus the
+GP's posterior variance of the range at the estimate times the identity (for `inv-log`, mapped to
+metres by the derivative of the inverse transform): a cone of slope 1 shifted by one posterior
+standard deviation moves its apex by about as much.
+
+tinygp is not used: it would add a dependency for a dense GP with one kernel, and its Matern kernels
+are the half-integer ones only (no nu = 5/3).
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Bool, Float
+
+from jaxcal.data import Result
+from jaxcal.errors import JaxcalError
+from jaxcal.params import with_overrides
+from jaxcal.trajectory.ls import finish, in_float64
+
+__all__ = [
+    "GPParams",
+    "matern",
+    "Hyper",
+    "neg_log_marginal_likelihood",
+    "fit_hyper",
+    "predict",
+    "search_anchor",
+    "stratified_subsample",
+    "to_target",
+    "from_target",
+    "calibrate",
+]
+
+
+class GPParams(eqx.Module):
+    """Parameters of `gp` (defaults).
+
+    Attributes:
+        target: `range` (paper text) or `inv-log` (public code: 1 / log10(sqrt(r) + 1)).
+        nu: Matern smoothness (1.5 as in the paper; 5/3 as in the public code).
+        n_train: training ranges per anchor (stratified subsample by range); n_bins: range strata.
+        seed: subsampling seed.
+        jitter: added to the kernel diagonal, relative to the signal variance.
+        max_steps: BFGS steps for the hyperparameters.
+        grid: samples per axis of the search cuboid; top_k: best samples averaged per round.
+        shrink: cuboid scale factor per round; tol_m: stop when the half size is below this [m].
+        margin_m: the initial cuboid is the data bounding box grown by this [m].
+        stages: 1 = one GP per anchor; 2 = then refit on the `n_train` shortest ranges and search again
+            around the first estimate (the paper's coarse-to-fine "iterative GP").
+        min_ranges, planar_tol_m, side, order, knot_dt_s, max_gap_s, time_offset_s, estimate_offset,
+        max_offset_s: as for `ls`.
+    """
+
+    target: str = "range"
+    nu: float = 1.5
+    n_train: int = 300
+    n_bins: int = 10
+    seed: int = 0
+    jitter: float = 1e-6
+    max_steps: int = 100
+    grid: int = 11
+    top_k: int = 10
+    shrink: float = 0.5
+    tol_m: float = 0.005
+    margin_m: float = 5.0
+    stages: int = 2
+    min_ranges: int = 10
+    planar_tol_m: float = 0.3
+    side: float = 1.0
+    order: int = 4
+    knot_dt_s: float = 0.0
+    max_gap_s: float = 0.0
+    time_offset_s: float = 0.0
+    estimate_offset: bool = False
+    max_offset_s: float = 1.0
+
+
+# ---------------------------------------------------------------------------------------- kernel
+
+_Z_SWITCH = 9.0
+_N_SERIES = 48
+
+
+def _matern_general(z2, nu: float):
+    """2^(1-nu)/Gamma(nu) z^nu K_nu(z) as a function of z^2, for non-integer nu (see module doc)."""
+    c = 2.0 ** (1.0 - nu) / math.gamma(nu)
+    pref = math.pi / (2.0 * math.sin(nu * math.pi))
+    small = z2 <= _Z_SWITCH**2
+    x = jnp.where(small, z2, 0.0) / 4.0
+    # sum_k x^k / (k! Gamma(k + 1 -+ nu)) by Horner on precomputed coefficients
+    a1 = [1.0 / (math.factorial(k) * math.gamma(k + 1 - nu)) for k in range(_N_SERIES)]
+    a2 = [1.0 / (math.factorial(k) * math.gamma(k + 1 + nu)) for k in range(_N_SERIES)]
+    s1 = jnp.zeros_like(x)
+    s2 = jnp.zeros_like(x)
+    for k in range(_N_SERIES - 1, -1, -1):
+        s1 = s1 * x + a1[k]
+        s2 = s2 * x + a2[k]
+    z2s = jnp.where(small, z2, 1.0)
+    zpow = jnp.where(small & (z2 > 0), jnp.exp(nu * jnp.log(jnp.where(z2 > 0, z2s, 1.0))), 0.0)
+    f_small = c * pref * (2.0**nu * s1 - 2.0 ** (-nu) * zpow * s2)
+    # asymptotic K_nu(z) ~ sqrt(pi / 2z) e^-z (1 + (mu-1)/8z + (mu-1)(mu-9)/(2!(8z)^2) + ...)
+    zl = jnp.sqrt(jnp.where(small, _Z_SWITCH**2, z2))
+    mu = 4.0 * nu * nu
+    term = jnp.ones_like(zl)
+    series = jnp.ones_like(zl)
+    for k in range(1, 8):
+        term = term * (mu - (2 * k - 1) ** 2) / (k * 8.0 * zl)
+        series = series + term
+    f_large = c * zl**nu * jnp.sqrt(math.pi / (2.0 * zl)) * jnp.exp(-zl) * series
+    return jnp.where(small, f_small, f_large)
+
+
+def matern(d2: Float[Array, "..."], length: Float[Array, ""], variance: Float[Array, ""], nu: float):
+    """Matern covariance from squared distances.
+
+    Args:
+        d2: squared distances [m^2], any shape. length: length scale l [m]. variance: s^2.
+        nu: smoothness (static): 0.5, 1.5, 2.5 in closed form, other non-integer values general.
+
+    Returns:
+        k(r) = s^2 2^(1-nu)/Gamma(nu) z^nu K_nu(z), z = sqrt(2 nu) r / l, same shape as d2.
+    """
+    z2 = 2.0 * nu * d2 / length**2
+    if nu in (0.5, 1.5, 2.5):
+        safe = jnp.where(z2 > 0, z2, 1.0)
+        z = jnp.where(z2 > 0, jnp.sqrt(safe), 0.0)
+        poly = {0.5: 1.0, 1.5: 1.0 + z, 2.5: 1.0 + z + z2 / 3.0}[nu]
+        return variance * poly * jnp.exp(-z)
+    if float(nu).is_integer() or nu <= 0:
+        raise JaxcalError(f"parameter nu: need a positive non-integer smoothness, got {nu}")
+    return variance * _matern_general(z2, nu)
+
+
+def _sqdist(a, b):
+    return jnp.sum((a[:, None, :] - b[None, :, :]) ** 2, axis=-1)
+
+
+# ------------------------------------------------------------------------------------ likelihood
+
+
+class Hyper(eqx.Module):
+    """GP hyperparameters in log space (one anchor, or stacked over anchors).
+
+    Attributes:
+        log_length: log length scale [log m]. log_variance: log signal variance.
+        log_noise: log white-noise variance.
+    """
+
+    log_length: Float[Array, "..."]
+    log_variance: Float[Array, "..."]
+    log_noise: Float[Array, "..."]
+
+
+def _gram(h: Hyper, x, mask, nu, jitter):
+    m = mask.astype(x.dtype)
+    var = jnp.exp(h.log_variance)
+    k = matern(_sqdist(x, x), jnp.exp(h.log_length), var, nu)
+    k = k * m[:, None] * m[None, :]
+    diag = (jnp.exp(h.log_noise) + jitter * var) * m + (1.0 - m)  # padding: unit diagonal, no coupling
+    return k + jnp.diag(diag)
+
+
+def neg_log_marginal_likelihood(
+    h: Hyper, x: Float[Array, "n 3"], y: Float[Array, " n"], mask: Bool[Array, " n"],
+    nu: float = 1.5, jitter: float = 1e-6,
+) -> Float[Array, ""]:
+    """-log p(y | x, h) of a zero-mean GP with Matern + white noise; padded entries (mask False) ignored.
+
+    Args:
+        h: hyperparameters. x: (n, 3) inputs [m]. y: (n,) centred targets. mask: (n,) valid entries.
+        nu: Matern smoothness (static). jitter: diagonal jitter relative to the signal variance.
+    """
+    k = _gram(h, x, mask, nu, jitter)
+    chol = jnp.linalg.cholesky(k)
+    yy = jnp.where(mask, y, 0.0)
+    alpha = jax.scipy.linalg.cho_solve((chol, True), yy)
+    n = jnp.sum(mask)
+    return 0.5 * yy @ alpha + jnp.sum(jnp.log(jnp.diagonal(chol))) + 0.5 * n * jnp.log(2.0 * jnp.pi)
+
+
+def fit_hyper(x, y, mask, init: Hyper, nu: float = 1.5, jitter: float = 1e-6, max_steps: int = 200):
+    """Maximise the marginal likelihood over the log hyperparameters (optx BFGS); returns Hyper.
+
+    Args:
+        x: (n, 3) [m]. y: (n,) centred targets. mask: (n,). init: starting point.
+    """
+
+    def loss(h, _):
+        # The objective is scaled by 1/n so that the BFGS tolerances mean the same for any n.
+        return neg_log_marginal_likelihood(h, x, y, mask, nu, jitter) / jnp.maximum(jnp.sum(mask), 1)
+
+    solver = optx.BFGS(rtol=1e-6, atol=1e-6)
+    sol = optx.minimise(loss, solver, init, max_steps=max_steps, throw=False)
+    ok = jnp.isfinite(loss(sol.value, None))
+    return jax.tree.map(lambda a, b: jnp.where(ok, a, b), sol.value, init)
+
+
+class _Posterior(eqx.Module):
+    x: Array
+    mask: Array
+    alpha: Array
+    chol: Array
+    hyper: Hyper
+    mean: Array
+    nu: float = eqx.field(static=True)
+
+
+def _posterior(h, x, y, mask, mean, nu, jitter):
+    k = _gram(h, x, mask, nu, jitter)
+    chol = jnp.linalg.cholesky(k)
+    alpha = jax.scipy.linalg.cho_solve((chol, True), jnp.where(mask, y, 0.0))
+    return _Posterior(x, mask, alpha, chol, h, mean, nu)
+
+
+def predict(post: _Posterior, xs: Float[Array, "m 3"], with_var: bool = False):
+    """Posterior mean (and variance) of the GP target at `xs` (m, 3) [m]."""
+    ks = matern(_sqdist(xs, post.x), jnp.exp(post.hyper.log_length), jnp.exp(post.hyper.log_variance), post.nu)
+    ks = ks * post.mask[None, :]
+    mu = post.mean + ks @ post.alpha
+    if not with_var:
+        return mu
+    v = jax.scipy.linalg.solve_triangular(post.chol, ks.T, lower=True)
+    var = jnp.exp(post.hyper.log_variance) - jnp.sum(v**2, axis=0)
+    return mu, jnp.maximum(var, 0.0)
+
+
+# ---------------------------------------------------------------------------------------- target
+
+
+def to_target(r, target: str):
+    """Range [m] -> GP target (`range`: identity; `inv-log`: 1 / log10(sqrt(r) + 1), r floored at 1 mm)."""
+    if target == "range":
+        return r
+    return 1.0 / jnp.log10(jnp.sqrt(jnp.maximum(r, 1e-3)) + 1.0)
+
+
+def from_target(y, target: str):
+    """Inverse of `to_target` (targets <= 0 of `inv-log` map to +inf)."""
+    if target == "range":
+        return y
+    safe = jnp.where(y > 0, y, 1.0)
+    return jnp.where(y > 0, (10.0 ** (1.0 / safe) - 1.0) ** 2, jnp.inf)
+
+
+# ---------------------------------------------------------------------------------------- search
+
+
+def search_anchor(post: _Posterior, centre, half, target: str, grid: int, top_k: int, shrink: float,
+                  n_rounds: int, grid_z: int):
+    """Iterative cuboid search for the extremum of the GP mean (one anchor).
+
+    Args:
+        post: GP posterior. centre: (3,) initial cuboid centre [m]. half: (3,) half sizes [m].
+        target: `range` (minimise) or `inv-log` (maximise). grid, grid_z: samples per axis (static).
+        top_k: samples averaged per round. shrink: scale per round. n_rounds: rounds (static).
+
+    Returns:
+        (estimate (3,), covariance (3, 3) of the last round's top-k samples).
+    """
+    ax = jnp.linspace(-1.0, 1.0, grid)
+    az = jnp.linspace(-1.0, 1.0, grid_z) if grid_z > 1 else jnp.zeros(1)
+    unit = jnp.stack(jnp.meshgrid(ax, ax, az, indexing="ij"), axis=-1).reshape(-1, 3)
+    sign = 1.0 if target == "inv-log" else -1.0  # score to maximise
+
+    def round_(carry, _):
+        c, h = carry
+        pts = c + unit * h
+        score = sign * predict(post, pts)
+        _, idx = jax.lax.top_k(score, top_k)
+        best = pts[idx]
+        new_c = jnp.mean(best, axis=0)
+        d = best - new_c
+        return (new_c, h * shrink), d.T @ d / max(top_k - 1, 1)
+
+    (c, _), covs = jax.lax.scan(round_, (centre, half), None, length=n_rounds)
+    return c, covs[-1]
+
+
+# ------------------------------------------------------------------------------------ subsample
+
+
+def stratified_subsample(rng_m: np.ndarray, n_train: int, n_bins: int, seed: int) -> np.ndarray:
+    """Indices of at most `n_train` ranges, equal quotas from `n_bins` equal-width range strata.
+
+    Strata with fewer ranges than their quota give all of theirs; the remaining quota is filled at
+    random from the rest. Host-side NumPy (once per dataset). Returns sorted indices.
+    """
+    n = rng_m.size
+    if n <= n_train:
+        return np.arange(n)
+    gen = np.random.default_rng(seed)
+    edges = np.linspace(rng_m.min(), rng_m.max(), n_bins + 1)
+    b = np.clip(np.searchsorted(edges, rng_m, side="right") - 1, 0, n_bins - 1)
+    quota = n_train // n_bins
+    chosen = []
+    for k in range(n_bins):
+        idx = np.nonzero(b == k)[0]
+        chosen.append(idx if idx.size <= quota else gen.choice(idx, quota, replace=False))
+    chosen = np.concatenate(chosen)
+    rest = np.setdiff1d(np.arange(n), chosen)
+    extra = gen.choice(rest, n_train - chosen.size, replace=False)
+    return np.sort(np.concatenate([chosen, extra]))
+
+
+# ------------------------------------------------------------------------------------ calibrate
+
+
+@eqx.filter_jit
+def _calibrate_all(x, r, mask, centre, half, planar, p: GPParams, n_rounds: int, grid_z: int):
+    def one(x, r, m, c0, h0, pl):
+        w = m.astype(x.dtype)
+        n = jnp.maximum(jnp.sum(w), 1.0)
+        origin = jnp.sum(x * w[:, None], axis=0) / n  # centred inputs for conditioning
+        xc = (x - origin) * w[:, None]
+        y = to_target(jnp.where(m, r, 1.0), p.target)
+        mean = jnp.sum(y * w) / n if p.target == "range" else jnp.zeros(())
+        yc = (y - mean) * w
+        var_y = jnp.maximum(jnp.sum(yc**2) / n, 1e-6)
+        ext = jnp.max(jnp.where(m[:, None], jnp.abs(xc), 0.0))
+        init = Hyper(jnp.log(jnp.maximum(0.3 * ext, 1e-2)), jnp.log(var_y), jnp.log(0.01 * var_y))
+        h = fit_hyper(xc, yc, m, init, p.nu, p.jitter, p.max_steps)
+        post = _posterior(h, xc, yc, m, mean, p.nu, p.jitter)
+        est, cov = search_anchor(post, c0 - origin, h0, p.target, p.grid, p.top_k, p.shrink, n_rounds, grid_z)
+        mu, var = predict(post, est[None], with_var=True)
+        d_hat = from_target(mu[0], p.target)
+        if p.target == "range":
+            sd = jnp.sqrt(var[0])
+        else:
+            dd = jax.grad(lambda y: from_target(y, "inv-log"))(mu[0])
+            sd = jnp.abs(dd) * jnp.sqrt(var[0])
+        height = jnp.maximum(d_hat, 0.0)
+        est = jnp.where(pl, est.at[2].set(est[2] + p.side * height), est)
+        return est + origin, cov + sd**2 * jnp.eye(3), h
+
+    return jax.vmap(one)(x, r, mask, centre, half, planar)
+
+
+@in_float64
+def calibrate(dataset, params=None, config=None) -> Result:
+    """`--method gp`: GP regression of the range per anchor + iterative cuboid search (frame `world`).
+
+    Args:
+        dataset: TrajectoryDataset. params: overrides of `GPParams`. config: ignored.
+
+    Returns:
+        Result with `position` (A, 3) and `covariance` (A, 3, 3); fitted hyperparameters in params.
+    """
+    from jaxcal.trajectory.poses import AnchorRanges, prepare
+
+    p = with_overrides(GPParams(), params)
+    if p.target not in ("range", "inv-log"):
+        raise JaxcalError(f"parameter target: expected range or inv-log, got {p.target!r}")
+    matern(jnp.zeros(1), 1.0, 1.0, p.nu)  # validates nu
+    if p.grid < 2 or p.top_k < 1 or p.top_k > p.grid**2 or not 0.0 < p.shrink < 1.0 or p.tol_m <= 0:
+        raise JaxcalError("parameters grid >= 2, 1 <= top_k <= grid^2, 0 < shrink < 1, tol_m > 0 required")
+    groups, info = prepare(dataset, p.order, p.knot_dt_s, p.max_gap_s, p.time_offset_s,
+                           p.estimate_offset, p.max_offset_s)
+    pos = np.asarray(groups.position)
+    rng_m = np.asarray(groups.range)
+    mask = np.asarray(groups.mask)
+    a_n = pos.shape[0]
+    n = max(1, min(p.n_train, int(mask.sum(axis=1).max())))
+    planar = np.array([mask[a].any() and pos[a, mask[a], 2].std() < p.planar_tol_m for a in range(a_n)])
+    grid_z = 1 if planar.all() else p.grid
+    est = cov = hyp = None
+    for stage in range(p.stages):
+        x = np.zeros((a_n, n, 3))
+        r = np.zeros((a_n, n))
+        m = np.zeros((a_n, n), dtype=bool)
+        centre = np.zeros((a_n, 3))
+        half = np.ones((a_n, 3))
+        for a in range(a_n):
+            valid = np.nonzero(mask[a])[0]
+            if valid.size == 0:
+                continue
+            if stage == 0:  # stratified over the whole range span, cuboid = data box + margin
+                sel = valid[stratified_subsample(rng_m[a, valid], n, p.n_bins, p.seed + a)]
+                lo, hi = pos[a, valid].min(axis=0), pos[a, valid].max(axis=0)
+                centre[a] = 0.5 * (lo + hi)
+                half[a] = 0.5 * (hi - lo) + p.margin_m
+            else:  # local refit: the n shortest ranges, cuboid around the last estimate
+                sel = valid[np.argsort(rng_m[a, valid], kind="stable")[:n]]
+                prev = np.asarray(est[a])
+                centre[a] = np.where(np.isfinite(prev), prev, pos[a, sel].mean(axis=0))
+                half[a] = min(rng_m[a, sel].max(), float(half_prev[a].max())) + p.tol_m
+            x[a, : sel.size], r[a, : sel.size], m[a, : sel.size] = pos[a, sel], rng_m[a, sel], True
+            if planar[a]:
+                centre[a, 2] = pos[a, valid, 2].mean()
+                half[a, 2] = 0.0
+        half_prev = half
+        n_rounds = max(1, int(math.ceil(math.log(half.max() / p.tol_m) / math.log(1.0 / p.shrink))))
+        est, cov, hyp = _calibrate_all(jnp.asarray(x), jnp.asarray(r), jnp.asarray(m), jnp.asarray(centre),
+                                       jnp.asarray(half), jnp.asarray(planar), p, n_rounds, grid_z)
+    info = dict(info, n_rounds=n_rounds, planar=planar.tolist(),
+                length_m=np.exp(np.asarray(hyp.log_length)).tolist(),
+                signal_var=np.exp(np.asarray(hyp.log_variance)).tolist(),
+                noise_var=np.exp(np.asarray(hyp.log_noise)).tolist())
+    kept = AnchorRanges(groups.position, groups.range, groups.mask)
+    return finish(dataset, "gp", p, kept, est, cov, info)
