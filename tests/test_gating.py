@@ -200,6 +200,9 @@ def test_simulated_yard_is_repetitive_and_ranges_consistent():
     true = np.linalg.norm(sc.query_position[:, None] - sc.anchor_truth[None], axis=-1)
     err = np.abs(sc.query_range - true)[heard]
     assert np.median(err) < 1.0  # LOS/NLOS mixture: mostly sub-metre
+    other = simulate_places(3, SMALL, n_queries=40, anchors=np.array([[10.0, 10.0, 5.0]]))
+    assert np.array_equal(other.query_descriptor, sc.query_descriptor)
+    assert other.query_range.shape == (40, 1)
     pos, cov = perturb_anchors(np.random.default_rng(0), sc.anchor_truth, 2.0)
     assert cov.shape == (4, 3, 3) and np.allclose(cov[0], 4.0 / 3.0 * np.eye(3))
 

@@ -152,6 +152,7 @@ def simulate_places(
     config: PlaceConfig | None = None,
     n_queries: int = 500,
     channel: ChannelModel | None = None,
+    anchors: np.ndarray | None = None,
 ) -> PlaceScene:
     """Simulate a repetitive yard, its prior keyframe map and a query run.
 
@@ -160,6 +161,9 @@ def simulate_places(
         config: yard parameters; `PlaceConfig()` when None.
         n_queries: Q, number of query places along the route.
         channel: ranging error model; `ChannelModel()` when None.
+        anchors: (A, 3) true anchor positions [m] to use instead of the jittered grid (e.g. the
+            anchors of another scenario over the same area); keyframes, queries and descriptors
+            are the same as without it for the same seed.
 
     Returns:
         A `PlaceScene`.
@@ -188,7 +192,15 @@ def simulate_places(
     jitter = rng.uniform(-0.2, 0.2, grid.shape) * np.array(
         [cfg.width_m / cfg.n_anchors_x, cfg.height_m / cfg.n_anchors_y]
     )
-    anchors = np.column_stack([grid + jitter, np.full(len(grid), cfg.anchor_height_m)])
+    grid_anchors = np.column_stack([grid + jitter, np.full(len(grid), cfg.anchor_height_m)])
+    if anchors is None:
+        anchors = grid_anchors
+    else:
+        anchors = np.asarray(anchors, dtype=np.float64)
+        if anchors.ndim != 2 or anchors.shape[1] != 3 or not np.all(np.isfinite(anchors)):
+            raise ValueError(
+                f"anchors: expected finite (A, 3) positions, got shape {anchors.shape}"
+            )
 
     # Query run: random places along the route, shifted along and across the aisle.
     pick = np.sort(rng.choice(k, size=n_queries, replace=n_queries > k))
