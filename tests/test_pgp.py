@@ -110,6 +110,7 @@ def test_moving_nodes_match_reference():
         sigma_r=p.sigma_r,
         v=p.v,
         sigma_v=p.sigma_v,
+        p_out=p.p_out,
         min_refs=p.min_refs,
     )
     np.testing.assert_allclose(info.posterior, ref["posterior"], atol=1e-9)
