@@ -469,35 +469,47 @@ def trajectory_anchors(
         estimates: label -> ((A, 2+) positions [m], (A, D, D) covariance [m^2] or None).
 
     Returns:
-        Figure with one panel.
+        Figure with two panels: the whole scene, and a zoom on the surveyed anchors (when there is truth).
     """
-    fig = _figure(8.5, 6.5)
-    ax = fig.subplots()
     path = np.asarray(path_xy, dtype=np.float64)
-    ax.plot(path[:, 0], path[:, 1], color="0.6", lw=0.8, label="platform path")
-    if anchor_truth is not None:
-        at = np.asarray(anchor_truth, dtype=np.float64)
-        ax.scatter(at[:, 0], at[:, 1], marker="^", s=90, facecolor="none", edgecolor="k", linewidths=1.5,
-                   label="anchor truth", zorder=5)
-        for i, a in enumerate(ids):
-            if np.isfinite(at[i, :2]).all():
-                ax.annotate(a, at[i, :2], xytext=(6, 6), textcoords="offset points", fontsize=9)
-    for m, (label, (pos, cov)) in enumerate(estimates.items()):
-        p = np.asarray(pos, dtype=np.float64)
-        if cov is not None:
-            c = np.asarray(cov, dtype=np.float64)
-            sd = np.sqrt(np.maximum(np.stack([c[:, 0, 0], c[:, 1, 1]], axis=1), 0.0))
+    at = None if anchor_truth is None else np.asarray(anchor_truth, dtype=np.float64)
+    zoom = at is not None and np.isfinite(at[:, :2]).all(axis=1).any()
+    fig = _figure(14.0 if zoom else 8.5, 6.2)
+    axes = fig.subplots(1, 2 if zoom else 1, squeeze=False)[0]
+    for k, ax in enumerate(axes):
+        ax.plot(path[:, 0], path[:, 1], color="0.6", lw=0.8, label="platform path")
+        if at is not None:
+            ax.scatter(at[:, 0], at[:, 1], marker="^", s=110, facecolor="none", edgecolor="k", linewidths=1.5,
+                       label="anchor truth", zorder=5)
+            for i, a in enumerate(ids):
+                if np.isfinite(at[i, :2]).all():
+                    off = ((8, 8), (8, -14), (-22, 8), (-22, -14))[i % 4]
+                    ax.annotate(a, at[i, :2], xytext=off, textcoords="offset points", fontsize=9)
+        for m, (label, (pos, cov)) in enumerate(estimates.items()):
+            p = np.asarray(pos, dtype=np.float64)
+            if cov is not None:
+                c = np.asarray(cov, dtype=np.float64)
+                sd = np.sqrt(np.maximum(np.stack([c[:, 0, 0], c[:, 1, 1]], axis=1), 0.0))
+            else:
+                sd = np.zeros((p.shape[0], 2))
+            ax.errorbar(p[:, 0], p[:, 1], xerr=2 * sd[:, 0], yerr=2 * sd[:, 1], fmt=MARKERS[m % len(MARKERS)],
+                        color=_colour(m), ms=6, capsize=3, lw=1.2, alpha=0.85,
+                        label=label + (" (±2σ)" if cov is not None else " (no covariance)"), zorder=4)
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.grid(alpha=0.3)
+        if k == 0:
+            ax.set_aspect("equal", adjustable="datalim")
+            ax.set_title("anchors over the trajectory")
+            ax.legend(fontsize=8, loc="best")
         else:
-            sd = np.zeros((p.shape[0], 2))
-        ax.errorbar(p[:, 0], p[:, 1], xerr=2 * sd[:, 0], yerr=2 * sd[:, 1], fmt=MARKERS[m % len(MARKERS)],
-                    color=_colour(m), ms=6, capsize=3, lw=1.2,
-                    label=label + (" (+-2 sigma)" if cov is not None else " (no covariance)"), zorder=4)
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_title("anchors over the trajectory")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="best")
+            ok = np.isfinite(at[:, :2]).all(axis=1)
+            lo, hi = at[ok, :2].min(axis=0), at[ok, :2].max(axis=0)
+            c, h = 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo)) + 2.0
+            ax.set_xlim(c[0] - h, c[0] + h)
+            ax.set_ylim(c[1] - h, c[1] + h)
+            ax.set_aspect("equal")
+            ax.set_title("zoom on the surveyed anchors (2 m margin)")
     return fig
 
 

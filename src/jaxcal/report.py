@@ -213,6 +213,8 @@ def _mesh_section(page: _Page, ds: MeshDataset, groups: dict[str, Result], evals
            "aligned: final positions after the best rigid motion (with reflection) onto the truth.")
     labels = list(evals)
     ids = ds.node_ids
+    # (method, configuration) of each group, from the result (labels may be the user's own)
+    mc = {lab: (r.method, _config_name(r, ds)) for lab, r in groups.items()}
     head = ["node"] + [f"{lab} RMSE [m]" for lab in labels]
     rows = [[nid] + [_fmt(evals[lab]["nodes"][i]["rmse_m"]) for lab in labels] for i, nid in enumerate(ids)]
     page.raw("<details><summary>per-node RMSE</summary>" + _table(head, rows, "num") + "</details>")
@@ -222,7 +224,7 @@ def _mesh_section(page: _Page, ds: MeshDataset, groups: dict[str, Result], evals
     if tracked:
         avail: dict[str, dict[str, np.ndarray]] = {}
         for lab in tracked:
-            m, conf = lab.split("/", 1)
+            m, conf = mc[lab]
             avail.setdefault(m, {})[conf] = np.array([n["availability"] for n in evals[lab]["nodes"]])
         rows = [[nid] + [_fmt(100 * avail[m][c][i], 1) for m in avail for c in avail[m]] for i, nid in enumerate(ids)]
         page.h2("Availability (Fig. 10)")
@@ -236,7 +238,7 @@ def _mesh_section(page: _Page, ds: MeshDataset, groups: dict[str, Result], evals
     errors = {lab: _epoch_errors(r, ds) for lab, r in groups.items()}
     by_method: dict[str, dict[str, np.ndarray]] = {}
     for lab, e in errors.items():
-        m, conf = lab.split("/", 1)
+        m, conf = mc[lab]
         by_method.setdefault(m, {})[conf] = e
     for m, confs in by_method.items():
         page.figure(plot.node_error_distributions(ids, confs, title=f"{m}: per-node position error over epochs"),
@@ -258,7 +260,7 @@ def _mesh_section(page: _Page, ds: MeshDataset, groups: dict[str, Result], evals
     page.h2("Final positions")
     by_conf: dict[str, dict[str, Result]] = {}
     for lab, r in groups.items():
-        by_conf.setdefault(lab.split("/", 1)[1], {})[lab] = r
+        by_conf.setdefault(mc[lab][1], {})[lab] = r
     from jaxcal.metrics import truth_in_result_frame
 
     pos = {v: i for i, v in enumerate(ds.node_ids)}
