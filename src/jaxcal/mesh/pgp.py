@@ -34,10 +34,11 @@ the
   each using the newest posteriors of the nodes before it (order-dependent, localises in fewer
   epochs).
 
-Defaults (`PGPParams`): 0.5 m cells and at most 8 hypotheses, so that the direct evaluation of eq.
-(11)
-finishes the 12-node, 2,000-epoch torgau scenario on a 2-core CPU (a faster likelihood is a later
-issue).
+Defaults (`PGPParams`): 0.5 m cells, at most 8 hypotheses, `likelihood="sparse"` (pairs without a
+range are skipped), so that the direct evaluation of eq. (11) finishes the simulated 12-node,
+2,000-epoch torgau scenario on the shared 2-core CPU in 2-7 minutes (123^2-129^2 cells; the time
+depends on the machine's load). Making it fast (FFT ring convolution, windows) is a later issue:
+it can add a `likelihood` option behind `grid.node_loglik`'s signature.
 """
 
 from __future__ import annotations
