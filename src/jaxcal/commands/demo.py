@@ -123,6 +123,7 @@ def run(args) -> int:
     say(format_table(groups, reference=PAPER_TABLE_I))
 
     summary: dict = {"dataset": ds.name, "source": origin, "groups": groups, "runs": []}
+    results = []  # for the report
     for method in methods:
         for conf in DEMO_CONFIGS:
             t0 = time.perf_counter()
@@ -140,6 +141,7 @@ def run(args) -> int:
             say(f"{method} {conf}: {seconds:.1f} s")
             path = out / f"{ds.name}-{method.replace('+', '_')}-{conf}.h5"
             hdf5.write(path, result)
+            results.append(result)
             report = evaluate(result, ds)
             report.pop("ecdf", None)
             summary["runs"].append(
@@ -155,6 +157,10 @@ def run(args) -> int:
     say("")
     say(_format_runs(summary["runs"], ds.node_ids))
     (out / "summary.json").write_text(_json(summary))
+    if results:
+        from jaxcal.report import write_report
+
+        say(f"report in {write_report(results, ds, out / 'report')}")
     if args.json:
         print_json(summary)
     else:
