@@ -194,10 +194,11 @@ def availability_bars(ids: Sequence[str], availability: Mapping[str, Mapping[str
             for b, v in zip(bars, a):
                 if np.isfinite(v) and v < 95:
                     ax.text(b.get_x() + b.get_width() / 2, v + 2, f"{v:.0f}", ha="center", va="bottom", fontsize=7)
-        ax.set_ylim(0, 112)
+        ax.set_ylim(0, 132)  # headroom above 100 % for the legend
+        ax.set_yticks([0, 20, 40, 60, 80, 100])
         ax.set_ylabel("availability [%]")
         ax.set_title(f"{method}: epochs with an estimate per node", fontsize=10)
-        ax.legend(loc="lower right", fontsize=8, ncols=len(confs))
+        ax.legend(loc="upper right", fontsize=8, ncols=len(confs))
         ax.grid(axis="y", alpha=0.3)
     axes[-1].set_xticks(x, ids, rotation=45)
     axes[-1].set_xlabel("node")
@@ -355,7 +356,7 @@ def positions_map(
     pad = 0.08 * float(max(np.max(hi - lo), 1.0))
     lo, hi = lo - pad, hi + pad
     ratio = float(np.clip((hi[0] - lo[0]) / (hi[1] - lo[1]), 0.5, 2.5))
-    fig = _figure(min(6.0 * ratio, 12.0) + 3.2, 6.0)
+    fig = _figure(min(6.0 * ratio, 12.0) + 0.8, 6.0 + 0.25 * (len(estimates) + 2) // 2)
     ax = fig.subplots()
     ax.scatter(t[ok, 0], t[ok, 1], marker="x", s=70, color="k", linewidths=1.8, label="truth", zorder=5)
     for i in np.flatnonzero(ok):
@@ -382,7 +383,7 @@ def positions_map(
     ax.set_ylabel("y [m]")
     ax.set_title((title + ": " if title else "") + f"final positions, {100 * level:.0f} % ellipses")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.legend(*ax.get_legend_handles_labels(), fontsize=8, loc="outside lower center", ncols=2)
     return fig
 
 
