@@ -43,6 +43,7 @@ __all__ = [
     "region_masks",
     "safe_norm",
     "top_hypotheses",
+    "soft_hypotheses",
     "predict",
     "pair_loglik",
     "node_loglik",
@@ -172,6 +173,33 @@ def top_hypotheses(
     keep = (before < tau) & jnp.isfinite(vals)
     keep = keep.at[0].set(True)
     lw = jnp.where(keep, vals, -jnp.inf)
+    return cells[idx], lw - jax.nn.logsumexp(lw)
+
+
+def soft_hypotheses(
+    logp: Float[Array, " cells"],
+    cells: Float[Array, "cells 2"],
+    n_hyp: int,
+    tau: Float[Array, ""],
+    temp: Float[Array, ""],
+) -> tuple[Float[Array, "hyp 2"], Float[Array, " hyp"]]:
+    """`top_hypotheses` with a smooth cut (differentiable in `tau`), for gradient tuning.
+
+    Cell l of the sorted cells gets the log weight `log p_l + log sigmoid((tau - m_l) / temp)`, with
+    `m_l` the mass of the cells before it (the hard rule keeps l iff `m_l < tau`); the most probable
+    cell is always kept whole. As `temp -> 0` this is `top_hypotheses` (except at `m_l == tau`).
+
+    Args:
+        logp, cells, n_hyp, tau: as in `top_hypotheses`. temp: temperature of the cut (mass units).
+
+    Returns:
+        (H, 2) hypothesis positions [m] and (H,) normalised log weights.
+    """
+    vals, idx = jax.lax.top_k(logp, n_hyp)
+    w = jnp.where(jnp.isfinite(vals), jnp.exp(vals), 0.0)
+    before = jnp.concatenate([jnp.zeros((1,), w.dtype), jnp.cumsum(w)[:-1]])
+    cut = jax.nn.log_sigmoid((tau - before) / temp).at[0].set(0.0)
+    lw = jnp.where(jnp.isfinite(vals), vals + cut, -jnp.inf)
     return cells[idx], lw - jax.nn.logsumexp(lw)
 
 

@@ -159,6 +159,9 @@ class FilterConfig(eqx.Module):
     mode: str = eqx.field(static=True)  # "pgp" (hypotheses, eq. 10-11) or "parametric" (eq. 9)
     n_snap: int = eqx.field(static=True)
     likelihood: str = eqx.field(static=True, default="sparse")
+    # "hard": eq. (10) as written; "soft": `G.soft_hypotheses` with `FilterParams.tau_temp` (tuning)
+    select: str = eqx.field(static=True, default="hard")
+    remat: bool = eqx.field(static=True, default=False)  # jax.checkpoint the epoch (gradients)
 
 
 class FilterParams(eqx.Module):
@@ -171,6 +174,7 @@ class FilterParams(eqx.Module):
     sigma_v: Float[Array, ""]
     alpha: Float[Array, ""]
     p_out: Float[Array, ""]
+    tau_temp: Float[Array, ""] | None = None  # temperature of `select="soft"` (unused when hard)
 
 
 class FilterInputs(eqx.Module):
@@ -201,6 +205,10 @@ class FilterOut(eqx.Module):
     estimate: Float[Array, "nodes 2"]  # after optional smoothing; NaN when not localised
     raw: Float[Array, "nodes 2"]  # eq. (13) before smoothing; NaN when not localised
     log_mass: Float[Array, " nodes"]  # log of the posterior's total mass (0 when normalised)
+    # log normaliser of eq. (12): log sum_g prior(g) * eq.11(g), prior normalised, factors as in
+    # eq. (11) (without the Gaussian's constant); 0 for a node without factors this epoch
+    log_evidence: Float[Array, " nodes"]
+    n_factors: Float[Array, " nodes"]  # number of range factors in eq. (11) this epoch
 
 
 class PGPInfo(eqx.Module):
@@ -244,6 +252,12 @@ def _hypotheses(
     cfg: FilterConfig, prm: FilterParams, logp: Float[Array, "n c"], cells: Float[Array, "c 2"]
 ):
     """(N, H, 2), (N, H), (N,) hypotheses of all nodes: eq. (10), or eq. (9) for parametric."""
+    if cfg.mode == "pgp" and cfg.select == "soft":
+        pos, lw = jax.vmap(G.soft_hypotheses, in_axes=(0, None, None, None, None))(
+            logp, cells, cfg.n_hyp, prm.tau, prm.tau_temp
+        )
+        sig = jnp.broadcast_to(prm.sigma_r, logp.shape[:1])
+        return pos, lw, sig
     if cfg.mode == "pgp":
         pos, lw = jax.vmap(G.top_hypotheses, in_axes=(0, None, None, None))(
             logp, cells, cfg.n_hyp, prm.tau
@@ -269,7 +283,8 @@ def _node_update(cfg, prm, cells, logp_i, mask_i, loc_i, hyps, z_i, use_i, step_
     lik = G.node_loglik_sparse if cfg.likelihood == "sparse" else G.node_loglik
     ll = lik(cells, hyps[0], hyps[1], hyps[2], z_i, use_i, prm.p_out)
     post = jnp.where(mask_i, prior + ll, -jnp.inf)
-    return post - jax.nn.logsumexp(post)
+    lse = jax.nn.logsumexp(post)
+    return post - lse, lse - jax.nn.logsumexp(jnp.where(mask_i, prior, -jnp.inf))
 
 
 def _smooth(cfg, prm, st: FilterState, raw, loc):
@@ -320,8 +335,9 @@ def _filter(
             loc = _localised(heard, inp.need)
             use = inp.allowed & jnp.isfinite(z) & loc[None, :]
             hyps = _hypotheses(cfg, prm, lp, cells)
-            lp = upd(lp, loc, hyps, z, use, step_m)
+            lp, ev = upd(lp, loc, hyps, z, use, step_m)
             heard = heard | use
+            nf = jnp.sum(use, axis=1).astype(lp.dtype)
         else:
             hyps = _hypotheses(cfg, prm, lp, cells)
 
@@ -329,16 +345,16 @@ def _filter(
                 lp, heard, hyps = carry
                 loc = _localised(heard, inp.need)
                 use_i = inp.allowed[i] & jnp.isfinite(z[i]) & loc
-                new = _node_update(
+                new, ev_i = _node_update(
                     cfg, prm, cells, lp[i], mask[i], loc[i], hyps, z[i], use_i, step_m
                 )
                 lp = lp.at[i].set(new)
                 heard = heard.at[i].set(heard[i] | use_i)
                 h1 = _hypotheses(cfg, prm, new[None], cells)
                 hyps = tuple(h.at[i].set(h1_[0]) for h, h1_ in zip(hyps, h1, strict=True))
-                return (lp, heard, hyps), None
+                return (lp, heard, hyps), (ev_i, jnp.sum(use_i).astype(lp.dtype))
 
-            (lp, heard, _), _ = jax.lax.scan(one, (lp, heard, hyps), jnp.arange(n))
+            (lp, heard, _), (ev, nf) = jax.lax.scan(one, (lp, heard, hyps), jnp.arange(n))
         loc = _localised(heard, inp.need)
         raw = jax.vmap(G.window_estimate, in_axes=(0, None, None))(lp, cells, prm.r_est)
         raw = jnp.where(loc[:, None], raw, nan2)
@@ -350,7 +366,7 @@ def _filter(
             hit = inp.snap_at == k
             snaps = jnp.where(hit[:, None, None, None], logpost[None], snaps)
         new = FilterState(logpost, heard, smooth, started, buf, snaps)
-        return new, FilterOut(est, raw, jax.nn.logsumexp(lp, axis=1))
+        return new, FilterOut(est, raw, jax.nn.logsumexp(lp, axis=1), ev, nf)
 
     st0 = FilterState(
         logpost=logpost0,
@@ -361,7 +377,8 @@ def _filter(
         snaps=jnp.full((cfg.n_snap,) + logpost0.shape, -jnp.inf, logpost0.dtype),
     )
     k = inp.z.shape[0]
-    return jax.lax.scan(epoch, st0, (inp.z, inp.dt, jnp.arange(k)))
+    body = jax.checkpoint(epoch) if cfg.remat else epoch
+    return jax.lax.scan(body, st0, (inp.z, inp.dt, jnp.arange(k)))
 
 
 run_filter = eqx.filter_jit(_filter)
