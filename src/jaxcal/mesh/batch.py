@@ -68,6 +68,13 @@ class BatchParams(eqx.Module):
         max_steps: iteration limit of the least-squares solver.
         tol: relative and absolute tolerance of the least-squares solver.
         seed: random seed of the random starts.
+        gnc_stages: graduated non-convexity: the multi-start fit runs with loss scales
+            sigma_r * 2^(G-1), ..., sigma_r (G stages; 1 = no graduation).
+        relocate_rounds: rounds of single-node relocation after the multi-start fit: every node in
+            turn is moved to the best point of a grid over the scene (its own robust cost, the
+            others fixed), which undoes flips (mirror images of weakly constrained nodes) and
+            placements pulled by a gross outlier; each move is refined and kept if the total cost drops.
+        relocate_grid: grid points per axis of the relocation search (2-D; a third of it per axis in 3-D).
         irls_iters: reweighting rounds of the all-epochs refinement (`summary=all`).
         z_up: 3-D only: of the two mirror images (z -> -z), report the one where the nodes other than
             a0, a1, a2 lie mostly above the a0-a1-a2 plane (true) or below it (false).
@@ -92,6 +99,9 @@ class BatchParams(eqx.Module):
     seed: int = 0
     z_up: bool = True
     irls_iters: int = 15
+    gnc_stages: int = 6
+    relocate_rounds: int = 2
+    relocate_grid: int = 48
 
     def __check_init__(self):
         for name, allowed in (("loss", LOSSES), ("bias", BIASES), ("summary", SUMMARIES),
@@ -108,8 +118,10 @@ class BatchParams(eqx.Module):
                 raise JaxcalError(f"parameter {name}: must be in [0, 1), got {getattr(self, name)}")
         if self.nlos_weight + self.outlier_weight >= 1:
             raise JaxcalError("parameters nlos_weight + outlier_weight must be < 1")
-        if self.n_starts < 0 or self.smacof_iters < 0 or self.max_steps < 1:
-            raise JaxcalError("parameters n_starts, smacof_iters must be >= 0 and max_steps >= 1")
+        if min(self.n_starts, self.smacof_iters, self.relocate_rounds) < 0 or min(
+                self.max_steps, self.irls_iters, self.gnc_stages, self.relocate_grid) < 1:
+            raise JaxcalError("parameters n_starts, smacof_iters, relocate_rounds must be >= 0; "
+                              "max_steps, irls_iters, gnc_stages, relocate_grid >= 1")
 
 
 class Observations(eqx.Module):
@@ -135,7 +147,7 @@ class BatchSolution(eqx.Module):
         covariance: (N, D, D) [m^2], NaN where undefined.
         offset_m: fitted common range offset c [m] (0 with `bias=none`).
         node_offset_m: (N,) fitted per-node offsets [m] (0 unless `bias=node`; NaN for inactive nodes).
-        cost: robust cost of the chosen start on the median summary.
+        cost: robust cost on the median summary after the multi-start fit and relocation.
         start_costs: (S,) robust cost reached from every start.
         residual_sigma_m: weighted residual standard deviation [m].
     """
@@ -186,7 +198,8 @@ def observations(range_m: np.ndarray, summary: str) -> tuple[np.ndarray, np.ndar
 
 
 class _Numbers(eqx.Module):
-    """The numeric parameters as arrays, so that new values do not recompile."""
+    """The numeric and categorical parameters as arrays, so that new values (a new loss included)
+    do not recompile: the loss is chosen by an index, the offset model by two 0/1 switches."""
 
     sigma_r: Array
     node_bias_sigma_m: Array
@@ -194,12 +207,20 @@ class _Numbers(eqx.Module):
     nlos_mean_m: Array
     outlier_weight: Array
     outlier_span_m: Array
+    loss_id: Array
+    use_c: Array
+    use_b: Array
 
     @classmethod
     def of(cls, p: BatchParams) -> _Numbers:
-        return cls(*(jnp.asarray(float(getattr(p, f)), dtype=float) for f in
-                     ("sigma_r", "node_bias_sigma_m", "nlos_weight", "nlos_mean_m", "outlier_weight",
-                      "outlier_span_m")))
+        nums = [jnp.asarray(float(getattr(p, f)), dtype=float) for f in
+                ("sigma_r", "node_bias_sigma_m", "nlos_weight", "nlos_mean_m", "outlier_weight",
+                 "outlier_span_m")]
+        return cls(*nums, jnp.asarray(LOSSES.index(p.loss)), jnp.asarray(float(p.bias != "none")),
+                   jnp.asarray(float(p.bias == "node")))
+
+    def with_loss(self, loss: str) -> _Numbers:
+        return eqx.tree_at(lambda nb: nb.loss_id, self, jnp.asarray(LOSSES.index(loss)))
 
 
 def _mixture_logpdf(e, nb: _Numbers):
@@ -211,7 +232,7 @@ def _mixture_logpdf(e, nb: _Numbers):
     log_los = jnp.log(w_los) - 0.5 * (e / s) ** 2 - jnp.log(s * jnp.sqrt(2 * jnp.pi))
     log_nlos = (jnp.log(jnp.maximum(w_nlos, 1e-300)) + jnp.log(lam) + 0.5 * (lam * s) ** 2 - lam * e
                 + jax.scipy.special.log_ndtr(e / s - lam * s))
-    log_out = jnp.log(jnp.maximum(w_out, 1e-300)) - jnp.log(nb.outlier_span_m)
+    log_out = jnp.broadcast_to(jnp.log(jnp.maximum(w_out, 1e-300)) - jnp.log(nb.outlier_span_m), e.shape)
     return jax.scipy.special.logsumexp(jnp.stack([log_los, log_nlos, log_out]), axis=0)
 
 
@@ -224,39 +245,41 @@ def _mixture_logpdf_bound(nb: _Numbers):
     return jnp.log(bound) + 1e-3  # strictly above: sqrt(rho) stays smooth
 
 
-def _rho(loss: str, e, nb: _Numbers):
-    """Robust cost of range errors e [m] (elementwise)."""
-    if loss == "mixture":
-        return _mixture_logpdf_bound(nb) - _mixture_logpdf(e, nb)
+def _select(loss_id, branches):
+    """branches[loss_id], elementwise; every branch is finite (and has finite gradients) everywhere."""
+    out = branches[0]
+    for k, b in enumerate(branches[1:], start=1):
+        out = jnp.where(loss_id == k, b, out)
+    return out
+
+
+def _rho(e, nb: _Numbers):
+    """Robust cost of range errors e [m] (elementwise), for the loss `LOSSES[nb.loss_id]`."""
     u = e / nb.sigma_r
-    if loss == "l2":
-        return 0.5 * u * u
-    if loss == "huber":
-        a = jnp.abs(u)
-        return jnp.where(a <= 1.0, 0.5 * u * u, a - 0.5)
-    return 0.5 * jnp.log1p(u * u)  # cauchy
+    a = jnp.abs(u)
+    l2 = 0.5 * u * u
+    huber = jnp.where(a <= 1.0, l2, a - 0.5)
+    cauchy = 0.5 * jnp.log1p(u * u)
+    mixture = _mixture_logpdf_bound(nb) - _mixture_logpdf(e, nb)
+    return _select(nb.loss_id, (l2, huber, cauchy, mixture))
 
 
-def _sqrt_rho(loss: str, e, nb: _Numbers):
+def _sqrt_rho(e, nb: _Numbers):
     """Residual f with f^2 / 2 = rho(e), smooth (and with finite derivatives) at e = 0."""
-    if loss == "mixture":
-        return jnp.sqrt(2.0 * _rho(loss, e, nb))
     u = e / nb.sigma_r
-    if loss == "l2":
-        return u
-    if loss == "huber":
-        a = jnp.abs(u)
-        return jnp.where(a <= 1.0, u, jnp.sign(u) * jnp.sqrt(jnp.maximum(2.0 * a - 1.0, 1.0)))
+    a = jnp.abs(u)
+    huber = jnp.where(a <= 1.0, u, jnp.sign(u) * jnp.sqrt(jnp.maximum(2.0 * a - 1.0, 1.0)))
     t = u * u  # cauchy: u * sqrt(log1p(t) / t), with the ratio's series near 0
     small = t < 1e-8
     ts = jnp.where(small, 1.0, t)
-    ratio = jnp.where(small, 1.0 - 0.5 * t, jnp.log1p(ts) / ts)
-    return u * jnp.sqrt(ratio)
+    cauchy = u * jnp.sqrt(jnp.where(small, 1.0 - 0.5 * t, jnp.log1p(ts) / ts))
+    mixture = jnp.sqrt(2.0 * (_mixture_logpdf_bound(nb) - _mixture_logpdf(e, nb)))
+    return _select(nb.loss_id, (u, huber, cauchy, mixture))
 
 
-def _irls_weight(loss: str, e, nb: _Numbers):
+def _irls_weight(e, nb: _Numbers):
     """IRLS weight psi(e) / e * sigma_r^2 (1 for l2), >= 0; psi = d rho / d e."""
-    rho1 = lambda x: _rho(loss, x, nb)  # noqa: E731
+    rho1 = lambda x: _rho(x, nb)  # noqa: E731
     d1 = jax.vmap(jax.grad(rho1))(e)
     d2 = jax.vmap(jax.grad(jax.grad(rho1)))(e)
     small = jnp.abs(e) < 1e-9
@@ -274,26 +297,27 @@ class _State(eqx.Module):
     b: Float[Array, " n"]
 
 
-def _errors(state: _State, obs: Observations, bias: str):
+def _errors(state: _State, obs: Observations, nb: _Numbers):
     """Range errors e = z - model [m] of every observation."""
     diff = state.x[obs.i] - state.x[obs.j]
     sq = jnp.sum(diff * diff, axis=-1)
     dist = jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
-    model = dist
-    if bias != "none":
-        model = model + state.c
-    if bias == "node":
-        model = model + state.b[obs.i] + state.b[obs.j]
+    model = dist + nb.use_c * state.c + nb.use_b * (state.b[obs.i] + state.b[obs.j])
     return obs.z - model
 
 
+def _prior_scales(nb: _Numbers):
+    """Prior widths [m] of c and b: unused offsets are pinned at zero (keeps full column rank)."""
+    sc = jnp.where(nb.use_c > 0, 10.0, 1e-3)
+    sb = jnp.where(nb.use_b > 0, nb.node_bias_sigma_m, 1e-3)
+    return sc, sb
+
+
 def _residuals(state: _State, args):
-    obs, nb, loss, bias = args
-    f = _sqrt_rho(loss, _errors(state, obs, bias), nb) * jnp.sqrt(obs.w)
-    # Priors keep the unused offsets at zero and the per-node offsets small (full column rank).
-    prior_c = state.c / (10.0 if bias != "none" else 1e-3)
-    prior_b = state.b / (nb.node_bias_sigma_m if bias == "node" else 1e-3)
-    return f, prior_c, prior_b
+    obs, nb = args
+    f = _sqrt_rho(_errors(state, obs, nb), nb) * jnp.sqrt(obs.w)
+    sc, sb = _prior_scales(nb)
+    return f, state.c / sc, state.b / sb
 
 
 def _cost(state: _State, args) -> Array:
@@ -329,23 +353,64 @@ def _initial_starts(d_pair: Array, w_pair: Array, key: Array, dim: int, init: st
 
 
 @eqx.filter_jit
-def _fit_starts(y0s: _State, obs: Observations, nb: _Numbers, loss: str, bias: str, solver: str,
-                tol: float, max_steps: int):
-    """Refine every start (a batched `_State`; vmapped least squares); returns final states and costs."""
-    args = (obs, nb, loss, bias)
+def _fit_starts(y0s: _State, obs: Observations, nb: _Numbers, solver: str, tol: float, max_steps: int,
+                gnc_stages: int = 0):
+    """Refine every start (a batched `_State`; vmapped least squares); returns final states and costs.
+
+    With `gnc_stages` > 0 the loss scale is graduated (graduated non-convexity): the fit is solved
+    with sigma_r * 2^(G-1), ..., 2 sigma_r, sigma_r in turn, each warm-started from the last. A wide
+    scale first pulls every start towards the bulk of the data before a narrow, redescending loss
+    decides which ranges are outliers, so gross errors in the start do not trap the fit.
+    """
+    args = (obs, nb)
+    factors = 2.0 ** jnp.arange(max(gnc_stages, 1) - 1, -1, -1, dtype=float)
 
     def one(y0):
-        sol = optx.least_squares(_residuals, _solver(solver, tol), y0, args, max_steps=max_steps,
-                                 throw=False)
-        return sol.value, _cost(sol.value, args)
+        def stage(y, factor):
+            nbk = eqx.tree_at(lambda t: t.sigma_r, nb, nb.sigma_r * factor)
+            sol = optx.least_squares(_residuals, _solver(solver, tol), y, (obs, nbk), max_steps=max_steps,
+                                     throw=False)
+            return sol.value, None
+
+        y, _ = jax.lax.scan(stage, y0, factors)
+        return y, _cost(y, args)
 
     return jax.vmap(one)(y0s)
 
 
 @eqx.filter_jit
+def _relocation_starts(state: _State, d: Array, w: Array, nb: _Numbers, grid_n: int) -> _State:
+    """(m,) batched starts: start k is `state` with node k moved to the grid point of least robust cost
+    of its own ranges (all other nodes fixed) outside the current node's neighbourhood."""
+    x = state.x
+    m, dim = x.shape
+    lo, hi = jnp.min(x, axis=0), jnp.max(x, axis=0)
+    margin = 0.25 * jnp.max(hi - lo)
+    axes = [jnp.linspace(lo[a] - margin, hi[a] + margin, grid_n) for a in range(dim)]
+    g = jnp.stack(jnp.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, dim)  # (G, dim)
+    dist = mds.pairwise_distances(jnp.concatenate([g, x], axis=0))[: g.shape[0], g.shape[0]:]  # (G, m)
+    # Score grid points with a loss no narrower than the grid spacing, or the true basin can be
+    # missed between two grid points; the refinement after the move uses the real scale.
+    spacing = (jnp.max(hi - lo) + 2 * margin) / (grid_n - 1)
+    nb_grid = eqx.tree_at(lambda t: t.sigma_r, nb, jnp.maximum(nb.sigma_r, spacing))
+
+    exclude = 3.0 * nb_grid.sigma_r
+
+    def best_point(k):
+        model = dist + nb.use_c * state.c + nb.use_b * (state.b[k] + state.b)[None, :]
+        cost = jnp.sum(w[k][None, :] * _rho(d[k][None, :] - model, nb_grid), axis=1)
+        # the best point of another basin: the current one is already a local optimum
+        near = jnp.linalg.norm(g - x[k], axis=1) < exclude
+        return g[jnp.argmin(jnp.where(near, jnp.inf, cost))]
+
+    moved = jax.vmap(best_point)(jnp.arange(m))  # (m, dim)
+    xs = jnp.where(jnp.eye(m, dtype=bool)[:, :, None], moved[None, :, :], x[None, :, :])
+    return _State(xs, jnp.broadcast_to(state.c, (m,)), jnp.broadcast_to(state.b, (m, m)))
+
+
+@eqx.filter_jit
 def _irls_all(y0: _State, obs: Observations, pair_i: Array, pair_j: Array, pair_of_obs: Array,
-              nb: _Numbers, loss: str, bias: str, solver: str, tol: float, max_steps: int,
-              n_iter: int) -> _State:
+              nb: _Numbers, solver: str, tol: float, max_steps: int, n_iter: int) -> _State:
     """Minimise the robust cost over every single range by iteratively reweighted least squares.
 
     With fixed weights w_k the cost of a pair's ranges, sum_k w_k (z_k - m)^2, equals
@@ -355,12 +420,12 @@ def _irls_all(y0: _State, obs: Observations, pair_i: Array, pair_j: Array, pair_
     n_pairs = pair_i.shape[0]
 
     def step(state, _):
-        e = _errors(state, obs, bias)
-        w = _irls_weight(loss, e, nb) * obs.w
+        e = _errors(state, obs, nb)
+        w = _irls_weight(e, nb) * obs.w
         wsum = jax.ops.segment_sum(w, pair_of_obs, n_pairs)
         zbar = jax.ops.segment_sum(w * obs.z, pair_of_obs, n_pairs) / jnp.maximum(wsum, 1e-300)
         pairs = Observations(pair_i, pair_j, zbar, wsum)
-        sol = optx.least_squares(_residuals, _solver(solver, tol), state, (pairs, nb, "l2", bias),
+        sol = optx.least_squares(_residuals, _solver(solver, tol), state, (pairs, nb.with_loss("l2")),
                                  max_steps=max_steps, throw=False)
         return sol.value, None
 
@@ -370,7 +435,7 @@ def _irls_all(y0: _State, obs: Observations, pair_i: Array, pair_j: Array, pair_
 
 @eqx.filter_jit
 def _covariance(free: Array, template: Array, mask: Array, c: Array, b: Array, obs: Observations,
-                nb: _Numbers, loss: str, bias: str):
+                nb: _Numbers):
     """Covariance of the free position coordinates (plus offsets) in the anchor frame.
 
     Returns (cov of free coordinates (F, F), residual sigma^2 [m^2]).
@@ -380,22 +445,21 @@ def _covariance(free: Array, template: Array, mask: Array, c: Array, b: Array, o
     def errs(theta):
         xf, cc, bb = theta
         x = template.ravel().at[idx].set(xf).reshape(template.shape)
-        return _errors(_State(x, cc, bb), obs, bias)
+        return _errors(_State(x, cc, bb), obs, nb)
 
     theta = (free, c, b)
     e = errs(theta)
     jac = jax.jacfwd(errs)(theta)
     n_b = b.shape[0]
     j = jnp.concatenate([jac[0], jac[1][:, None], jac[2]], axis=1)  # (M, F + 1 + n)
-    w = _irls_weight(loss, e, nb) * obs.w
-    n_par = free.shape[0] + (1 if bias != "none" else 0) + (n_b if bias == "node" else 0)
+    w = _irls_weight(e, nb) * obs.w
+    n_par = free.shape[0] + nb.use_c + nb.use_b * n_b
     dof = jnp.maximum(jnp.sum(obs.w) - n_par, 1.0)
     s2 = jnp.sum(w * e * e) / dof
     h = (j.T * w) @ j / s2
     # Unused offsets are pinned by a stiff prior; per-node offsets get their Gaussian prior.
-    prior_c = 1.0 / (10.0**2) if bias != "none" else 1e12
-    prior_b = 1.0 / nb.node_bias_sigma_m**2 if bias == "node" else 1e12
-    prior = jnp.concatenate([jnp.zeros(free.shape[0]), jnp.array([prior_c]), jnp.full(n_b, prior_b)])
+    sc, sb = _prior_scales(nb)
+    prior = jnp.concatenate([jnp.zeros(free.shape[0]), jnp.stack([1.0 / sc**2]), jnp.full(n_b, 1.0 / sb**2)])
     h = h + jnp.diag(prior)
     cov = jnp.linalg.inv(h)
     f = free.shape[0]
@@ -404,6 +468,19 @@ def _covariance(free: Array, template: Array, mask: Array, c: Array, b: Array, o
 
 # ---------------------------------------------------------------------------------------------
 # Public entry points
+
+
+def _bucket(m: int) -> int:
+    """Padded length >= m from the sequence 16, 24, 32, 48, 64, ... (fewer distinct shapes to compile)."""
+    size = 16
+    while size < m:
+        size = size * 3 // 2 if size & (size - 1) == 0 else size * 4 // 3
+    return size
+
+
+def _pad(a: np.ndarray, size: int) -> np.ndarray:
+    """`a` padded with zeros to `size` (padded observations get weight 0 and contribute nothing)."""
+    return np.concatenate([a, np.zeros(size - a.shape[0], dtype=a.dtype)])
 
 
 def _active_nodes(i: np.ndarray, j: np.ndarray, n: int, a0: int) -> np.ndarray:
@@ -463,13 +540,16 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
 
     def to_obs(i, j, z, w):
         keep = active[i] & active[j]
-        return Observations(jnp.asarray(remap[i[keep]]), jnp.asarray(remap[j[keep]]),
-                            jnp.asarray(z[keep], dtype=float), jnp.asarray(w[keep], dtype=float))
+        size = _bucket(int(keep.sum()))
+        return Observations(*(jnp.asarray(_pad(a, size)) for a in (
+            remap[i[keep]], remap[j[keep]], z[keep].astype(float), w[keep].astype(float))))
 
     obs_med = to_obs(i_m, j_m, z_m, w_m)
     d_pair = np.full((m, m), np.nan)
-    d_pair[np.asarray(obs_med.i), np.asarray(obs_med.j)] = np.asarray(obs_med.z)
-    d_pair[np.asarray(obs_med.j), np.asarray(obs_med.i)] = np.asarray(obs_med.z)
+    real = np.asarray(obs_med.w) > 0
+    mi, mj, mz = np.asarray(obs_med.i)[real], np.asarray(obs_med.j)[real], np.asarray(obs_med.z)[real]
+    d_pair[mi, mj] = mz
+    d_pair[mj, mi] = mz
     w_pair = np.isfinite(d_pair).astype(float)
     nb = _Numbers.of(p)
     key = jax.random.PRNGKey(p.seed)
@@ -477,19 +557,30 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
                           p.n_starts, p.smacof_iters)
     s_count = x0s.shape[0]
     y0s = _State(x0s, jnp.zeros(s_count), jnp.zeros((s_count, m)))
-    states, costs = _fit_starts(y0s, obs_med, nb, p.loss, p.bias, p.solver, p.tol, p.max_steps)
+    states, costs = _fit_starts(y0s, obs_med, nb, p.solver, p.tol, p.max_steps, p.gnc_stages)
     costs = np.where(np.isfinite(np.asarray(costs)), np.asarray(costs), np.inf)
     best = int(np.argmin(costs))
     state = jax.tree.map(lambda a: a[best], states)
+    cost = float(costs[best])
+    d_j, w_j = jnp.asarray(np.nan_to_num(d_pair)), jnp.asarray(w_pair)
+    grid_n = p.relocate_grid if p.dim == 2 else max(p.relocate_grid // 3, 2)
+    for _ in range(p.relocate_rounds):
+        starts = _relocation_starts(state, d_j, w_j, nb, grid_n)
+        moved, moved_costs = _fit_starts(starts, obs_med, nb, p.solver, p.tol, p.max_steps)
+        moved_costs = np.where(np.isfinite(np.asarray(moved_costs)), np.asarray(moved_costs), np.inf)
+        k = int(np.argmin(moved_costs))
+        if not moved_costs[k] < cost - 1e-9 * max(1.0, abs(cost)):
+            break
+        state, cost = jax.tree.map(lambda a: a[k], moved), float(moved_costs[k])
     obs = obs_med
     if p.summary == "all":
         obs = to_obs(*observations(r, "all"))
         oi, oj = np.asarray(obs.i), np.asarray(obs.j)
-        key_pair = np.minimum(oi, oj) * m + np.maximum(oi, oj)
+        key_pair = np.minimum(oi, oj) * m + np.maximum(oi, oj)  # padding maps to pair (0, 0), weight 0
         uniq, pair_of_obs = np.unique(key_pair, return_inverse=True)
-        state = _irls_all(state, obs, jnp.asarray(uniq // m), jnp.asarray(uniq % m),
-                          jnp.asarray(pair_of_obs), nb, p.loss, p.bias, p.solver, p.tol, p.max_steps,
-                          p.irls_iters)
+        size = _bucket(uniq.size)
+        state = _irls_all(state, obs, jnp.asarray(_pad(uniq // m, size)), jnp.asarray(_pad(uniq % m, size)),
+                          jnp.asarray(pair_of_obs), nb, p.solver, p.tol, p.max_steps, p.irls_iters)
 
     x_sub = np.asarray(state.x)
     x_frame_sub = to_frame(x_sub, int(remap[a0]), int(remap[a1]), int(remap[a2]))
@@ -510,7 +601,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     x_frame_sub[~mask] = 0.0
     free = x_frame_sub[mask]
     cov_free, s2 = _covariance(jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c,
-                               state.b, obs, nb, p.loss, p.bias)
+                               state.b, obs, nb)
     cov_free = np.asarray(cov_free)
     full_idx = np.flatnonzero(mask.ravel())
     cov_all = np.zeros((m * p.dim, m * p.dim))
@@ -529,7 +620,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     return BatchSolution(
         position=position, covariance=covariance,
         offset_m=float(state.c) if p.bias != "none" else 0.0, node_offset_m=node_off,
-        cost=float(costs[best]), start_costs=costs, residual_sigma_m=float(np.sqrt(s2)),
+        cost=cost, start_costs=costs, residual_sigma_m=float(np.sqrt(s2)),
     )
 
 

@@ -1,0 +1,268 @@
+"""Robust batch mesh solver (`--method batch`) and its global initialisation (mesh.mds)."""
+
+import json
+
+import h5py
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.sparse.csgraph import shortest_path
+
+from conftest import assert_one_line_error, run_cli
+from jaxcal.data import MeshDataset
+from jaxcal.errors import JaxcalError
+from jaxcal.io import hdf5
+from jaxcal.mesh import batch as B
+from jaxcal.mesh import mds
+from jaxcal.mesh.frame import align_rigid, apply_rigid, to_frame
+
+# Small settings shared by the tests, so that most of them reuse one compilation.
+FAST = dict(n_starts=2, smacof_iters=100)
+N, K = 7, 3
+
+
+def ranges_of(truth, k=K, noise=0.0, offset=0.0, rng=None, missing=((0, 5),)):
+    d = np.linalg.norm(truth[:, None] - truth[None], axis=-1)
+    r = np.repeat(d[None], k, axis=0) + offset
+    if noise:
+        r = r + rng.normal(0, noise, r.shape)
+    for e in range(k):
+        np.fill_diagonal(r[e], np.nan)
+    for i, j in missing:
+        r[:, i, j] = r[:, j, i] = np.nan
+    return r
+
+
+def random_geometry(rng, dim, n=N, span=20.0):
+    while True:  # well-spread points (no near-collinear frame triangle)
+        x = rng.uniform(0, span, (n, dim))
+        v1, v2 = x[1] - x[0], x[2] - x[0]
+        area = np.linalg.norm(np.cross(v1, v2)) if dim == 3 else abs(v1[0] * v2[1] - v1[1] * v2[0])
+        if area > 0.1 * span**2 and np.min(np.linalg.norm(x[:, None] - x[None], axis=-1)[np.triu_indices(n, 1)]) > 1.0:
+            return x
+
+
+def z_up_frame(truth, anchors):
+    f = to_frame(truth, *anchors)
+    others = np.setdiff1d(np.arange(len(f)), anchors)
+    if f.shape[1] == 3 and f[others, 2].sum() < 0:
+        f[:, 2] *= -1
+    return f
+
+
+def aligned_rmse(est, truth):
+    r, t = align_rigid(est, truth)
+    return float(np.sqrt(np.mean(np.sum((apply_rigid(est, r, t) - truth) ** 2, axis=1))))
+
+
+# ---------------------------------------------------------------------------------------------- mds
+
+
+def test_complete_distances_equals_scipy_shortest_path(rng):
+    x = rng.uniform(0, 10, (8, 2))
+    d = np.linalg.norm(x[:, None] - x[None], axis=-1)
+    d[rng.random(d.shape) < 0.4] = np.nan
+    d = np.where(np.isnan(d) | np.isnan(d.T), np.nan, d)
+    np.fill_diagonal(d, np.nan)
+    ours = np.asarray(mds.complete_distances(jnp.asarray(d)))
+    ref = shortest_path(np.nan_to_num(d), directed=False)  # 0 = no edge
+    np.testing.assert_allclose(ours, ref, rtol=1e-12)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_classical_mds_exact_on_euclidean_distances(rng, dim):
+    x = rng.uniform(0, 10, (9, dim))
+    d = np.linalg.norm(x[:, None] - x[None], axis=-1)
+    y = np.asarray(mds.classical_mds(jnp.asarray(d), dim))
+    np.testing.assert_allclose(np.linalg.norm(y[:, None] - y[None], axis=-1), d, atol=1e-9)
+
+
+def _smacof_reference(d, w, x, n_iter):
+    """Slow, obviously-correct weighted Guttman transform with an explicit pseudo-inverse."""
+    n = len(x)
+    v = -w.copy()
+    np.fill_diagonal(v, 0)
+    np.fill_diagonal(v, -v.sum(axis=1))
+    vp = np.linalg.pinv(v)
+    x = x - x.mean(axis=0)
+    for _ in range(n_iter):
+        b = np.zeros((n, n))
+        for i in range(n):
+            for j in range(n):
+                dij = np.linalg.norm(x[i] - x[j])
+                if i != j and dij > 0:
+                    b[i, j] = -w[i, j] * d[i, j] / dij
+        np.fill_diagonal(b, -b.sum(axis=1))
+        x = vp @ b @ x
+    return x
+
+
+def test_smacof_matches_reference_and_decreases_stress(rng):
+    x = rng.uniform(0, 10, (6, 2))
+    d = np.linalg.norm(x[:, None] - x[None], axis=-1) + rng.normal(0, 0.1, (6, 6))
+    d = 0.5 * (d + d.T)
+    w = (rng.random((6, 6)) > 0.2).astype(float)
+    w = np.maximum(w, w.T)
+    w[0, :] = w[:, 0] = 1.0  # connected
+    np.fill_diagonal(w, 0)
+    x0 = rng.uniform(0, 10, (6, 2))
+    ours = np.asarray(mds.smacof(jnp.asarray(d), jnp.asarray(w), jnp.asarray(x0), 5))
+    np.testing.assert_allclose(ours, _smacof_reference(d, w, x0, 5), atol=1e-9)
+    s = [float(mds.stress(mds.smacof(jnp.asarray(d), jnp.asarray(w), jnp.asarray(x0), k), d, w))
+         for k in (0, 1, 5, 50)]
+    assert all(a >= b - 1e-12 for a, b in zip(s, s[1:])), s
+
+
+# -------------------------------------------------------------------------------------------- solve
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_noise_free_exact_in_random_geometries(rng, dim):
+    p = B.BatchParams(dim=dim, **FAST)
+    for _ in range(3):
+        truth = random_geometry(rng, dim)
+        sol = B.solve(ranges_of(truth), (0, 1, 2), p)
+        np.testing.assert_allclose(sol.position, z_up_frame(truth, (0, 1, 2)), atol=1e-6)
+        assert abs(sol.offset_m) < 1e-6
+
+
+def test_3d_mirror_convention(rng):
+    truth = random_geometry(rng, 3)
+    up = B.solve(ranges_of(truth), (0, 1, 2), B.BatchParams(dim=3, **FAST)).position
+    down = B.solve(ranges_of(truth), (0, 1, 2), B.BatchParams(dim=3, z_up=False, **FAST)).position
+    assert up[3:, 2].sum() > 0
+    np.testing.assert_allclose(down, up * np.array([1, 1, -1]), atol=1e-6)
+
+
+def test_frame_gauge_exact_for_any_configuration(rng):
+    truth = random_geometry(rng, 2)
+    r = ranges_of(truth, noise=0.05, rng=rng)
+    a = (3, 6, 1)
+    sol = B.solve(r, a, B.BatchParams(**FAST))
+    x = sol.position
+    assert np.all(x[3] == 0.0) and x[6, 1] == 0.0 and x[6, 0] > 0 and x[1, 1] > 0
+    assert aligned_rmse(x, truth) < 0.1
+
+
+def test_robust_to_gross_outliers_where_least_squares_is_not(rng):
+    truth = random_geometry(rng, 2)
+    r = ranges_of(truth, noise=0.02, rng=rng)
+    r[:, 3, 5] += 15.0  # one pair always far too long (NLOS-like) ...
+    r[:, 5, 3] += 15.0
+    r[0, 1, 4] += 20.0  # ... and two sporadic gross errors
+    r[2, 6, 2] += 25.0
+    plain = B.solve(r, (0, 1, 2), B.BatchParams(loss="l2", bias="none", **FAST))
+    robust = B.solve(r, (0, 1, 2), B.BatchParams(loss="cauchy", bias="none", **FAST))
+    assert aligned_rmse(plain.position, truth) > 0.5
+    assert aligned_rmse(robust.position, truth) < 0.05
+    mixture = B.solve(r, (0, 1, 2), B.BatchParams(loss="mixture", bias="none", sigma_r=0.05, **FAST))
+    assert aligned_rmse(mixture.position, truth) < 0.05
+
+
+def test_recovers_known_network_bias(rng):
+    truth = random_geometry(rng, 2)
+    r = ranges_of(truth, noise=0.01, offset=-0.2, rng=rng)
+    sol = B.solve(r, (0, 1, 2), B.BatchParams(bias="network", **FAST))
+    assert abs(sol.offset_m + 0.2) < 0.02
+    assert aligned_rmse(sol.position, truth) < 0.03
+    ignored = B.solve(r, (0, 1, 2), B.BatchParams(bias="none", **FAST))
+    assert aligned_rmse(ignored.position, truth) > 2 * aligned_rmse(sol.position, truth)
+
+
+def test_irls_all_epochs_equals_direct_fit(rng):
+    """The per-pair IRLS of summary=all reaches the minimiser of the full per-range robust cost."""
+    truth = random_geometry(rng, 2)
+    r = ranges_of(truth, noise=0.1, rng=rng)
+    r[0, 2, 4] += 3.0
+    p = B.BatchParams(loss="huber", summary="all", irls_iters=60, **FAST)
+    fast = B.solve(r, (0, 1, 2), p)
+    # reference: LM directly on every single range, started from the answer of the fast path
+    i, j, z, w = B.observations(r, "all")
+    obs = B.Observations(jnp.asarray(i), jnp.asarray(j), jnp.asarray(z), jnp.asarray(w))
+    y0 = B._State(jnp.asarray(fast.position)[None] + 0.05, jnp.zeros(1), jnp.zeros((1, N)))
+    st, _ = B._fit_starts(y0, obs, B._Numbers.of(p), p.loss, p.bias, p.solver, 1e-12, 500)
+    ref = to_frame(np.asarray(st.x[0]), 0, 1, 2)
+    np.testing.assert_allclose(fast.position, ref, atol=1e-5)
+    assert abs(fast.offset_m - float(st.c[0])) < 1e-5
+
+
+def test_covariance_shape_psd_and_equals_finite_difference_reference(rng):
+    truth = random_geometry(rng, 2)
+    r = ranges_of(truth, k=1, noise=0.05, rng=rng)
+    p = B.BatchParams(loss="l2", bias="none", summary="median", **FAST)
+    sol = B.solve(r, (0, 1, 2), p)
+    cov = sol.covariance
+    assert cov.shape == (N, 2, 2)
+    np.testing.assert_allclose(cov, np.swapaxes(cov, 1, 2))
+    assert np.all(cov[0] == 0) and cov[1][1, 1] == 0 and cov[1][0, 0] > 0
+    assert all(np.linalg.eigvalsh(cov[k]).min() > 0 for k in range(2, N))
+    # reference: sigma^2 (J^T J)^-1 with a finite-difference J in the gauge-fixed coordinates
+    i, j, z, _ = B.observations(r, "median")
+    x = sol.position
+    mask = np.ones_like(x, dtype=bool)
+    mask[0] = False
+    mask[1, 1] = False
+
+    def res(theta):
+        y = x.copy()
+        y[mask] = theta
+        return np.linalg.norm(y[i] - y[j], axis=1) - z
+
+    th = x[mask]
+    jac = np.stack([(res(th + h) - res(th - h)) / 2e-6 for h in np.eye(th.size) * 1e-6], axis=1)
+    s2 = np.sum(res(th) ** 2) / (len(z) - th.size)
+    ref = s2 * np.linalg.inv(jac.T @ jac)
+    full = np.zeros((N * 2, N * 2))
+    idx = np.flatnonzero(mask.ravel())
+    full[np.ix_(idx, idx)] = ref
+    for k in range(N):
+        np.testing.assert_allclose(cov[k], full[2 * k:2 * k + 2, 2 * k:2 * k + 2], rtol=1e-4, atol=1e-12)
+
+
+def test_unconnected_frame_node_is_a_clear_error(rng):
+    truth = random_geometry(rng, 2)
+    r = ranges_of(truth, missing=[(2, k) for k in range(N) if k != 2])
+    with pytest.raises(JaxcalError, match="no ranges connecting"):
+        B.solve(r, (0, 1, 2), B.BatchParams(**FAST))
+
+
+def test_unconnected_other_node_is_nan(rng):
+    truth = random_geometry(rng, 2)
+    r = ranges_of(truth, missing=[(6, k) for k in range(6)])
+    sol = B.solve(r, (0, 1, 2), B.BatchParams(**FAST))
+    assert np.isnan(sol.position[6]).all() and np.isfinite(sol.position[:6]).all()
+    np.testing.assert_allclose(sol.position[:6], to_frame(truth[:6], 0, 1, 2), atol=1e-6)
+
+
+def test_bad_parameters_rejected():
+    with pytest.raises(JaxcalError, match="loss"):
+        B.BatchParams(loss="tukey")
+    with pytest.raises(JaxcalError, match="dim"):
+        B.BatchParams(dim=4)
+
+
+# ---------------------------------------------------------------------------------------------- CLI
+
+
+def test_cli_calibrate_batch(tmp_path, rng):
+    truth = random_geometry(rng, 2)
+    ds = MeshDataset(name="small", node_ids=[f"n{k}" for k in range(N)], time=np.arange(K) * 0.1,
+                     range=ranges_of(truth, noise=0.02, offset=-0.15, rng=rng), truth=truth,
+                     configs={"c": (2, 4, 0)})
+    f = tmp_path / "small.h5"
+    hdf5.write(f, ds)
+    out = tmp_path / "res.h5"
+    proc = run_cli("calibrate", f, "--method", "batch", "-o", out, "--config", "c",
+                   "--set", "n_starts=2", "--set", "loss=huber", "--json")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["estimated"] == N
+    res = hdf5.read(out)
+    assert res.method == "batch" and res.frame == "anchors:2,4,0"
+    assert res.params["loss"] == "huber" and res.params["n_starts"] == 2 and res.params["bias"] == "network"
+    assert res.covariance.shape == (N, 2, 2)
+    np.testing.assert_allclose(res.position[2], 0.0, atol=0)
+    assert aligned_rmse(res.position, truth) < 0.05
+    with h5py.File(out) as h:
+        assert json.loads(h.attrs["params"])["sigma_r"] == 0.2
+    bad = run_cli("calibrate", f, "--method", "batch", "-o", tmp_path / "x.h5", "--set", "loss=tukey")
+    assert_one_line_error(bad, "loss")
