@@ -16,7 +16,8 @@ at r = 0) for z <= 9 and the large-z asymptotic expansion beyond (see `matern`).
 the series costs at most ~1e-10 absolute in k / s^2, below the jitter.
 
 Hyperparameters (log length scale, log signal variance, log noise variance) maximise the marginal
-likelihood: `optx.minimise` with BFGS on the negative log marginal likelihood, per anchor, vmapped.
+likelihood: `optx.minimise` with BFGS on the negative log marginal likelihood, per anchor (anchors in
+one jitted `lax.map`: every anchor shares the shapes, padded and masked).
 
 Anchor search (the paper's iterative cuboid search): a regular G^3 grid in a cuboid around the data
 (bounding box of the anchor's tag positions plus `margin_m`); the `top_k` (10) best grid samples are
@@ -372,7 +373,9 @@ def _calibrate_all(x, r, mask, centre, half, planar, p: GPParams, n_rounds: int,
         est = jnp.where(pl, est.at[2].set(est[2] + p.side * height), est)
         return est + origin, cov + sd**2 * jnp.eye(3), h
 
-    return jax.vmap(one)(x, r, mask, centre, half, planar)
+    # lax.map, not vmap: batched triangular solves (Cholesky gradients) are far slower on CPU than a
+    # sequence of unbatched ones; the anchors are independent either way.
+    return jax.lax.map(lambda a: one(*a), (x, r, mask, centre, half, planar))
 
 
 @in_float64
@@ -428,7 +431,8 @@ def calibrate(dataset, params=None, config=None) -> Result:
                 centre[a, 2] = pos[a, valid, 2].mean()
                 half[a, 2] = 0.0
         half_prev = half
-        n_rounds = max(1, int(math.ceil(math.log(half.max() / p.tol_m) / math.log(1.0 / p.shrink))))
+        if stage == 0:  # the same (static) number of rounds in every stage: one compilation
+            n_rounds = max(1, int(math.ceil(math.log(half.max() / p.tol_m) / math.log(1.0 / p.shrink))))
         est, cov, hyp = _calibrate_all(jnp.asarray(x), jnp.asarray(r), jnp.asarray(m), jnp.asarray(centre),
                                        jnp.asarray(half), jnp.asarray(planar), p, n_rounds, grid_z)
     info = dict(info, n_rounds=n_rounds, planar=planar.tolist(),
