@@ -23,8 +23,9 @@ def _execute(name: str, tmp_path, monkeypatch):
     monkeypatch.setenv("JAXCAL_NOTEBOOK_OUT", str(tmp_path))
     monkeypatch.setenv("JAX_PLATFORMS", "cpu")
     nb = nbformat.read(NOTEBOOKS / name, as_version=4)
-    client = nbclient.NotebookClient(nb, timeout=300, kernel_name="python3",
-                                     resources={"metadata": {"path": str(NOTEBOOKS)}})
+    client = nbclient.NotebookClient(
+        nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOKS)}}
+    )
     client.execute()
     return nb
 
@@ -45,7 +46,11 @@ def test_mesh_torgau_notebook(tmp_path, monkeypatch):
         assert label in text
     out = tmp_path / "mesh_torgau"
     assert (out / "index.html").is_file()
-    for name in ("fig10_availability.png", "fig12b_ecdf_node_rmse.png", "fig06_posteriors_pgp_conf1.png"):
+    for name in (
+        "fig10_availability.png",
+        "fig12b_ecdf_node_rmse.png",
+        "fig06_posteriors_pgp_conf1.png",
+    ):
         assert (out / name).stat().st_size > 5000
     images = sum("image/png" in o.get("data", {}) for c in nb.cells for o in c.get("outputs", []))
     assert images >= 10
@@ -54,7 +59,9 @@ def test_mesh_torgau_notebook(tmp_path, monkeypatch):
 def test_gp_trajectory_notebook(tmp_path, monkeypatch):
     nb = _execute("gp_trajectory.ipynb", tmp_path, monkeypatch)
     text = _text(nb)
-    if "nothing to calibrate" in text:  # neither the shared recording nor the campus simulator exists
+    if (
+        "nothing to calibrate" in text
+    ):  # neither the shared recording nor the campus simulator exists
         assert not (tmp_path / "gp_trajectory").exists()
         return
     for method in ("gp", "nls", "ls"):

@@ -8,8 +8,8 @@ import re
 
 import numpy as np
 import pytest
-from conftest import assert_one_line_error, run_cli
 
+from conftest import assert_one_line_error, run_cli
 from jaxcal import plot
 from jaxcal.data import Result, TrajectoryDataset
 from jaxcal.errors import JaxcalError
@@ -48,9 +48,16 @@ def test_report_cli_mesh(mesh_files):
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)
     expected = {
-        "fig09_ranging_residuals.png", "fig11a_qq.png", "fig11b_pairwise_rmse.png", "fig10_availability.png",
-        "fig12a_node_errors_cf.png", "fig12a_node_errors_pgp.png", "fig12b_ecdf_node_rmse.png",
-        "fig13b_ecdf_epoch_errors.png", "positions_conf1.png", "fig06_posteriors_pgp_conf1.png",
+        "fig09_ranging_residuals.png",
+        "fig11a_qq.png",
+        "fig11b_pairwise_rmse.png",
+        "fig10_availability.png",
+        "fig12a_node_errors_cf.png",
+        "fig12a_node_errors_pgp.png",
+        "fig12b_ecdf_node_rmse.png",
+        "fig13b_ecdf_epoch_errors.png",
+        "positions_conf1.png",
+        "fig06_posteriors_pgp_conf1.png",
     }
     pngs = {p.name for p in out.glob("*.png")}
     assert pngs == expected
@@ -123,9 +130,18 @@ def _trajectory():
     r = np.linalg.norm(anchors[ra] - pos, axis=1) + rng.normal(0, 0.1, rt.size)
     los = np.where(ra == 2, 0, 1)
     return TrajectoryDataset(
-        name="loop", anchor_ids=["A1", "A2", "A3"], tag_ids=["T"], lever_arm=np.zeros((1, 3)),
-        pose_time=t, pose_position=path, range_time=rt, range_anchor=ra, range_tag=np.zeros_like(ra),
-        range=r, range_los=los, anchor_truth=anchors,
+        name="loop",
+        anchor_ids=["A1", "A2", "A3"],
+        tag_ids=["T"],
+        lever_arm=np.zeros((1, 3)),
+        pose_time=t,
+        pose_position=path,
+        range_time=rt,
+        range_anchor=ra,
+        range_tag=np.zeros_like(ra),
+        range=r,
+        range_los=los,
+        anchor_truth=anchors,
     )
 
 
@@ -133,13 +149,27 @@ def test_report_trajectory_and_sweep(tmp_path):
     ds = _trajectory()
     est = ds.anchor_truth + np.array([[0.3, -0.2, 0.1], [0.0, 0.5, 0.0], [1.0, 0.0, -0.5]])
     cov = np.tile(np.diag([0.04, 0.09, 0.25])[None], (3, 1, 1))
-    res = Result(ids=ds.anchor_ids, position=est, method="nls", dataset=ds.name, frame="world", covariance=cov)
+    res = Result(
+        ids=ds.anchor_ids,
+        position=est,
+        method="nls",
+        dataset=ds.name,
+        frame="world",
+        covariance=cov,
+    )
     s, t = np.array([0.1, 0.2, 0.4]), np.array([0.5, 0.7, 0.9, 0.99])
     rmse = np.add.outer((s - 0.2) ** 2, (t - 0.9) ** 2) + 0.5
-    index = write_report([res], ds, tmp_path, sweeps=[{"sigma_r": s, "tau": t, "rmse": rmse, "title": "toy"}])
+    index = write_report(
+        [res], ds, tmp_path, sweeps=[{"sigma_r": s, "tau": t, "rmse": rmse, "title": "toy"}]
+    )
     pngs = {p.name for p in tmp_path.glob("*.png")}
-    assert {"anchors_trajectory.png", "ecdf_anchor_errors.png", "sweep_0.png", "fig09_ranging_residuals.png",
-            "fig11a_qq.png"} == pngs
+    assert {
+        "anchors_trajectory.png",
+        "ecdf_anchor_errors.png",
+        "sweep_0.png",
+        "fig09_ranging_residuals.png",
+        "fig11a_qq.png",
+    } == pngs
     _check_pngs(tmp_path, pngs)
     numbers = json.loads((tmp_path / "report.json").read_text())
     assert numbers["sweeps"][0]["best"] == {"sigma_r_m": 0.2, "tau": 0.9, "rmse_m": 0.5}
@@ -170,20 +200,37 @@ def test_figures_have_labelled_axes():
         "avail": plot.availability_bars(ids, {"cf": {"conf1": np.array([1, 0.5, 0.2, 0.0])}}),
         "box": plot.node_error_distributions(ids, {"conf1": np.abs(rng.normal(0, 1, (20, 4)))}),
         "ecdf": plot.rmse_ecdfs({"x": np.abs(rng.normal(0, 1, 30))}),
-        "pos": plot.positions_map(rng.random((4, 2)) * 10, ids,
-                                  {"m": (rng.random((4, 2)) * 10, np.tile(np.eye(2) * 0.1, (4, 1, 1)))}),
-        "traj": plot.trajectory_anchors(rng.random((50, 3)) * 10, rng.random((4, 3)) * 10, ids,
-                                        {"m": (rng.random((4, 3)) * 10, np.tile(np.eye(3) * 0.1, (4, 1, 1)))}),
+        "pos": plot.positions_map(
+            rng.random((4, 2)) * 10,
+            ids,
+            {"m": (rng.random((4, 2)) * 10, np.tile(np.eye(2) * 0.1, (4, 1, 1)))},
+        ),
+        "traj": plot.trajectory_anchors(
+            rng.random((50, 3)) * 10,
+            rng.random((4, 3)) * 10,
+            ids,
+            {"m": (rng.random((4, 3)) * 10, np.tile(np.eye(3) * 0.1, (4, 1, 1)))},
+        ),
     }
     for name, fig in figs.items():
         for xl, yl in _labels(fig):
             assert xl and yl, name
         assert any("[m]" in xl + yl or "[%]" in yl for xl, yl in _labels(fig)), name
     colour = {
-        "matrix": plot.pairwise_rmse_matrix(np.where(np.eye(4) > 0, np.nan, rng.random((4, 4)) * 5 + 0.1), ids),
-        "post": plot.posterior_grids(np.arange(-5.0, 5.0, 0.5), rng.dirichlet(np.ones(400), (2, 3)).reshape(2, 3, 20, 20),
-                                     ids[:3], [1, 4], rng.random((3, 2)), np.zeros((2, 3, 2))),
-        "sweep": plot.sweep_surface(np.array([0.1, 0.2]), np.array([0.5, 0.9, 0.95]), rng.random((2, 3))),
+        "matrix": plot.pairwise_rmse_matrix(
+            np.where(np.eye(4) > 0, np.nan, rng.random((4, 4)) * 5 + 0.1), ids
+        ),
+        "post": plot.posterior_grids(
+            np.arange(-5.0, 5.0, 0.5),
+            rng.dirichlet(np.ones(400), (2, 3)).reshape(2, 3, 20, 20),
+            ids[:3],
+            [1, 4],
+            rng.random((3, 2)),
+            np.zeros((2, 3, 2)),
+        ),
+        "sweep": plot.sweep_surface(
+            np.array([0.1, 0.2]), np.array([0.5, 0.9, 0.95]), rng.random((2, 3))
+        ),
     }
     for name, fig in colour.items():
         assert _has_colorbar(fig), name
@@ -197,7 +244,9 @@ def test_figures_have_labelled_axes():
 def test_covariance_ellipse_matches_eigen_decomposition():
     # axis-aligned: semi-axes sqrt(chi2_2(0.95) * variance), chi2_2(0.95) = -2 ln 0.05 = 5.9915
     a, b, ang = plot.covariance_ellipse(np.diag([4.0, 1.0]), 0.95)
-    assert a == pytest.approx(np.sqrt(5.991464547 * 4.0)) and b == pytest.approx(np.sqrt(5.991464547))
+    assert a == pytest.approx(np.sqrt(5.991464547 * 4.0)) and b == pytest.approx(
+        np.sqrt(5.991464547)
+    )
     assert ang % 180.0 == pytest.approx(0.0, abs=1e-9)
     # rotated by 30 degrees
     th = np.radians(30.0)

@@ -58,8 +58,12 @@ def ranging_histograms(err: np.ndarray, los: np.ndarray, bins: int = 80):
     los = np.asarray(los)
     fig = _figure(12, 3.6)
     axes = fig.subplots(1, 3)
-    groups = (("LOS", los == 1, COLOURS[0]), ("NLOS", los == 0, COLOURS[1]), ("all", np.ones(err.size, bool), "0.35"))
-    for ax, (name, mask, colour) in zip(axes, groups):
+    groups = (
+        ("LOS", los == 1, COLOURS[0]),
+        ("NLOS", los == 0, COLOURS[1]),
+        ("all", np.ones(err.size, bool), "0.35"),
+    )
+    for ax, (name, mask, colour) in zip(axes, groups, strict=True):
         x = err[mask & np.isfinite(err)]
         ax.set_title(f"{name} (n = {x.size:,})")
         ax.set_xlabel("range - true distance [m]")
@@ -71,10 +75,20 @@ def ranging_histograms(err: np.ndarray, los: np.ndarray, bins: int = 80):
         ax.set_yscale("log")
         ax.axvline(0.0, color="k", lw=0.8, ls="--")
         a = np.abs(x)
-        text = (f"mean {x.mean():+.2f} m\nmedian {np.median(x):+.2f} m\n"
-                f"|e| 68.27 % {np.quantile(a, 0.6827):.2f} m\n|e| 95.45 % {np.quantile(a, 0.9545):.2f} m")
-        ax.text(0.97, 0.97, text, transform=ax.transAxes, ha="right", va="top", fontsize=8,
-                bbox={"boxstyle": "round", "fc": "white", "ec": "0.7"})
+        text = (
+            f"mean {x.mean():+.2f} m\nmedian {np.median(x):+.2f} m\n"
+            f"|e| 68.27 % {np.quantile(a, 0.6827):.2f} m\n|e| 95.45 % {np.quantile(a, 0.9545):.2f} m"
+        )
+        ax.text(
+            0.97,
+            0.97,
+            text,
+            transform=ax.transAxes,
+            ha="right",
+            va="top",
+            fontsize=8,
+            bbox={"boxstyle": "round", "fc": "white", "ec": "0.7"},
+        )
     return fig
 
 
@@ -98,8 +112,13 @@ def qq_plot(true_q: np.ndarray, measured_q: np.ndarray, r2_qq: float, r2: float 
         ax.plot([lo, hi], [lo, hi], color="k", lw=0.8, ls="--", label="measured = true")
         if t.size > 1 and np.ptp(t) > 0:
             slope, icpt = np.polyfit(t, m, 1)
-            ax.plot([lo, hi], [icpt + slope * lo, icpt + slope * hi], color=COLOURS[1], lw=1.2,
-                    label=f"fit: slope {slope:.2f}, offset {icpt:+.2f} m")
+            ax.plot(
+                [lo, hi],
+                [icpt + slope * lo, icpt + slope * hi],
+                color=COLOURS[1],
+                lw=1.2,
+                label=f"fit: slope {slope:.2f}, offset {icpt:+.2f} m",
+            )
     title = f"Q-Q, $R^2$ = {r2_qq:.3f}"
     if r2 is not None and np.isfinite(r2):
         title += f" (per measurement {r2:.3f})"
@@ -138,8 +157,15 @@ def pairwise_rmse_matrix(rmse: np.ndarray, ids: Sequence[str]):
             v = r[i, j]
             if np.isfinite(v):
                 dark = np.log(v / vmin) < 0.6 * np.log(vmax / vmin)
-                ax.text(j, i, f"{v:.1f}" if v < 10 else f"{v:.0f}", ha="center", va="center",
-                        fontsize=7 if n <= 14 else 5, color="white" if dark else "black")
+                ax.text(
+                    j,
+                    i,
+                    f"{v:.1f}" if v < 10 else f"{v:.0f}",
+                    ha="center",
+                    va="center",
+                    fontsize=7 if n <= 14 else 5,
+                    color="white" if dark else "black",
+                )
     ax.set_xticks(range(n), ids, rotation=90)
     ax.set_yticks(range(n), ids)
     ax.set_xlabel("to node j")
@@ -185,15 +211,24 @@ def availability_bars(ids: Sequence[str], availability: Mapping[str, Mapping[str
     fig = _figure(max(8.0, 0.6 * n + 2), 2.4 * max(len(methods), 1) + 0.6)
     axes = np.atleast_1d(fig.subplots(max(len(methods), 1), 1, sharex=True, squeeze=False)[:, 0])
     x = np.arange(n)
-    for ax, method in zip(axes, methods):
+    for ax, method in zip(axes, methods, strict=True):
         confs = list(availability[method])
         w = 0.8 / max(len(confs), 1)
         for c, conf in enumerate(confs):
             a = 100.0 * np.asarray(availability[method][conf], dtype=np.float64)
-            bars = ax.bar(x + (c - (len(confs) - 1) / 2) * w, a, width=w, color=_colour(c), label=conf)
-            for b, v in zip(bars, a):
+            bars = ax.bar(
+                x + (c - (len(confs) - 1) / 2) * w, a, width=w, color=_colour(c), label=conf
+            )
+            for b, v in zip(bars, a, strict=True):
                 if np.isfinite(v) and v < 95:
-                    ax.text(b.get_x() + b.get_width() / 2, v + 2, f"{v:.0f}", ha="center", va="bottom", fontsize=7)
+                    ax.text(
+                        b.get_x() + b.get_width() / 2,
+                        v + 2,
+                        f"{v:.0f}",
+                        ha="center",
+                        va="bottom",
+                        fontsize=7,
+                    )
         ax.set_ylim(0, 132)  # headroom above 100 % for the legend
         ax.set_yticks([0, 20, 40, 60, 80, 100])
         ax.set_ylabel("availability [%]")
@@ -236,41 +271,79 @@ def node_error_distributions(ids: Sequence[str], errors: Mapping[str, np.ndarray
                 data.append(np.maximum(v, 1e-3))
                 where.append(pos[i])
             else:
-                ax.text(pos[i], 0.02, "none", transform=ax.get_xaxis_transform(), ha="center", va="bottom",
-                        fontsize=7, rotation=90, color=_colour(c))
+                ax.text(
+                    pos[i],
+                    0.02,
+                    "none",
+                    transform=ax.get_xaxis_transform(),
+                    ha="center",
+                    va="bottom",
+                    fontsize=7,
+                    rotation=90,
+                    color=_colour(c),
+                )
         if data:
-            bp = ax.boxplot(data, positions=where, widths=w * 0.85, whis=(5, 95), showfliers=False,
-                            patch_artist=True, manage_ticks=False)
+            bp = ax.boxplot(
+                data,
+                positions=where,
+                widths=w * 0.85,
+                whis=(5, 95),
+                showfliers=False,
+                patch_artist=True,
+                manage_ticks=False,
+            )
             for box in bp["boxes"]:
                 box.set(facecolor=_colour(c), alpha=0.45, edgecolor=_colour(c))
             for part in ("medians", "whiskers", "caps"):
                 for line in bp[part]:
                     line.set(color=_colour(c))
             rms = [float(np.sqrt(np.mean(d * d))) for d in data]
-            ax.scatter(where, rms, marker="D", s=18, color=_colour(c), edgecolor="k", linewidth=0.5, zorder=4)
+            ax.scatter(
+                where,
+                rms,
+                marker="D",
+                s=18,
+                color=_colour(c),
+                edgecolor="k",
+                linewidth=0.5,
+                zorder=4,
+            )
         from matplotlib.patches import Patch
 
         handles.append(Patch(facecolor=_colour(c), alpha=0.6, label=conf))
     from matplotlib.lines import Line2D
 
-    handles.append(Line2D([], [], marker="D", ls="", color="0.5", markeredgecolor="k", label="node RMSE"))
+    handles.append(
+        Line2D([], [], marker="D", ls="", color="0.5", markeredgecolor="k", label="node RMSE")
+    )
     ax.set_yscale("log")
-    lows = [np.nanpercentile(np.asarray(e, dtype=np.float64), 5) for e in errors.values()
-            if np.isfinite(np.asarray(e, dtype=np.float64)).any()]
+    lows = [
+        np.nanpercentile(np.asarray(e, dtype=np.float64), 5)
+        for e in errors.values()
+        if np.isfinite(np.asarray(e, dtype=np.float64)).any()
+    ]
     ax.set_ylim(max(1e-3, 0.3 * min(lows)) if lows else 1e-3, None)
     _plain_log_axis(ax.yaxis)
     ax.set_xlim(-0.6, n - 0.4)
     ax.set_xticks(x, ids, rotation=45)
     ax.set_xlabel("node")
     ax.set_ylabel("position error per epoch [m]")
-    ax.set_title((title + "\n" if title else "") + "boxes 25-75 %, whiskers 5-95 %; 'none': no estimate (a0: origin)",
-                 fontsize=10)
+    ax.set_title(
+        (title + "\n" if title else "")
+        + "boxes 25-75 %, whiskers 5-95 %; 'none': no estimate (a0: origin)",
+        fontsize=10,
+    )
     ax.legend(handles=handles, fontsize=8, loc="upper left", ncols=len(handles))
     ax.grid(axis="y", which="both", alpha=0.25)
     return fig
 
 
-def rmse_ecdfs(values: Mapping[str, np.ndarray], xlabel: str = "node RMSE [m]", title: str = "", log_x: bool = True):
+def rmse_ecdfs(
+    values: Mapping[str, np.ndarray],
+    xlabel: str = "node RMSE [m]",
+    title: str = "",
+    log_x: bool = True,
+):
     """Fig. 12b / 13b: empirical CDFs of errors, one curve per (method, configuration).
 
     Args:
@@ -288,9 +361,15 @@ def rmse_ecdfs(values: Mapping[str, np.ndarray], xlabel: str = "node RMSE [m]", 
         if x.size == 0:
             continue
         p = np.arange(1, x.size + 1) / x.size
-        ax.step(np.maximum(x, 1e-3) if log_x else x, p, where="post", color=_colour(i),
-                ls=("-", "--", ":", "-.")[(i // len(COLOURS)) % 4], lw=1.6,
-                label=f"{label} (median {np.median(x):.2f} m)")
+        ax.step(
+            np.maximum(x, 1e-3) if log_x else x,
+            p,
+            where="post",
+            color=_colour(i),
+            ls=("-", "--", ":", "-.")[(i // len(COLOURS)) % 4],
+            lw=1.6,
+            label=f"{label} (median {np.median(x):.2f} m)",
+        )
     if log_x:
         ax.set_xscale("log")
         _plain_log_axis(ax.xaxis)
@@ -358,7 +437,9 @@ def positions_map(
     ratio = float(np.clip((hi[0] - lo[0]) / (hi[1] - lo[1]), 0.5, 2.5))
     fig = _figure(min(6.0 * ratio, 12.0) + 0.8, 6.0 + 0.25 * (len(estimates) + 2) // 2)
     ax = fig.subplots()
-    ax.scatter(t[ok, 0], t[ok, 1], marker="x", s=70, color="k", linewidths=1.8, label="truth", zorder=5)
+    ax.scatter(
+        t[ok, 0], t[ok, 1], marker="x", s=70, color="k", linewidths=1.8, label="truth", zorder=5
+    )
     for i in np.flatnonzero(ok):
         ax.annotate(ids[i], t[i], xytext=(5, 5), textcoords="offset points", fontsize=8)
     for m, (label, (pos, cov)) in enumerate(estimates.items()):
@@ -368,14 +449,32 @@ def positions_map(
         n_out = int((fin & ~inside).sum())
         extra = f", {n_out} outside view" if n_out else ""
         extra += "" if cov is not None else ", no covariance"
-        ax.scatter(p[inside, 0], p[inside, 1], marker=MARKERS[m % len(MARKERS)], s=28, color=_colour(m),
-                   alpha=0.9, label=f"{label}{extra}", zorder=4)
+        ax.scatter(
+            p[inside, 0],
+            p[inside, 1],
+            marker=MARKERS[m % len(MARKERS)],
+            s=28,
+            color=_colour(m),
+            alpha=0.9,
+            label=f"{label}{extra}",
+            zorder=4,
+        )
         if cov is not None:
             c = np.asarray(cov, dtype=np.float64)
             for i in np.flatnonzero(inside & np.isfinite(c[:, :2, :2]).all(axis=(1, 2))):
                 a, b, ang = covariance_ellipse(c[i], level)
-                ax.add_patch(Ellipse(p[i], 2 * max(a, 0.05), 2 * max(b, 0.05), angle=ang, fill=False,
-                                     color=_colour(m), lw=1.0, alpha=0.9))
+                ax.add_patch(
+                    Ellipse(
+                        p[i],
+                        2 * max(a, 0.05),
+                        2 * max(b, 0.05),
+                        angle=ang,
+                        fill=False,
+                        color=_colour(m),
+                        lw=1.0,
+                        alpha=0.9,
+                    )
+                )
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
@@ -438,11 +537,22 @@ def posterior_grids(
         for c in range(s_n):
             ax = axes[r, c]
             p = np.clip(g[c, r].T, floor, 1.0)  # rows of imshow are y
-            im = ax.imshow(p, origin="lower", extent=extent, cmap="magma", norm=norm, interpolation="nearest")
+            im = ax.imshow(
+                p, origin="lower", extent=extent, cmap="magma", norm=norm, interpolation="nearest"
+            )
             if truth is not None and np.isfinite(truth[r, :2]).all():
-                ax.scatter([truth[r, 0]], [truth[r, 1]], marker="x", s=60, color="cyan", linewidths=1.8)
+                ax.scatter(
+                    [truth[r, 0]], [truth[r, 1]], marker="x", s=60, color="cyan", linewidths=1.8
+                )
             if estimates is not None and np.isfinite(estimates[c, r, :2]).all():
-                ax.scatter([estimates[c, r, 0]], [estimates[c, r, 1]], marker="+", s=70, color="lime", linewidths=1.5)
+                ax.scatter(
+                    [estimates[c, r, 0]],
+                    [estimates[c, r, 1]],
+                    marker="+",
+                    s=70,
+                    color="lime",
+                    linewidths=1.5,
+                )
             ax.set_xlim(cx - h, cx + h)
             ax.set_ylim(cy - h, cy + h)
             ax.set_title(f"{node_ids[r]}, epoch {int(epochs[c])}", fontsize=9)
@@ -451,8 +561,11 @@ def posterior_grids(
             ax.tick_params(labelsize=7)
     if im is not None:
         fig.colorbar(im, ax=axes, label="posterior probability per cell", shrink=0.9)
-    fig.suptitle("posterior grids (cyan x: truth" + (", green +: estimate)" if estimates is not None else ")"),
-                 fontsize=10)
+    fig.suptitle(
+        "posterior grids (cyan x: truth"
+        + (", green +: estimate)" if estimates is not None else ")"),
+        fontsize=10,
+    )
     return fig
 
 
@@ -480,8 +593,17 @@ def trajectory_anchors(
     for k, ax in enumerate(axes):
         ax.plot(path[:, 0], path[:, 1], color="0.6", lw=0.8, label="platform path")
         if at is not None:
-            ax.scatter(at[:, 0], at[:, 1], marker="^", s=110, facecolor="none", edgecolor="k", linewidths=1.5,
-                       label="anchor truth", zorder=5)
+            ax.scatter(
+                at[:, 0],
+                at[:, 1],
+                marker="^",
+                s=110,
+                facecolor="none",
+                edgecolor="k",
+                linewidths=1.5,
+                label="anchor truth",
+                zorder=5,
+            )
             for i, a in enumerate(ids):
                 if np.isfinite(at[i, :2]).all():
                     off = ((8, 8), (8, -14), (-22, 8), (-22, -14))[i % 4]
@@ -493,9 +615,20 @@ def trajectory_anchors(
                 sd = np.sqrt(np.maximum(np.stack([c[:, 0, 0], c[:, 1, 1]], axis=1), 0.0))
             else:
                 sd = np.zeros((p.shape[0], 2))
-            ax.errorbar(p[:, 0], p[:, 1], xerr=2 * sd[:, 0], yerr=2 * sd[:, 1], fmt=MARKERS[m % len(MARKERS)],
-                        color=_colour(m), ms=6, capsize=3, lw=1.2, alpha=0.85,
-                        label=label + (" (±2σ)" if cov is not None else " (no covariance)"), zorder=4)
+            ax.errorbar(
+                p[:, 0],
+                p[:, 1],
+                xerr=2 * sd[:, 0],
+                yerr=2 * sd[:, 1],
+                fmt=MARKERS[m % len(MARKERS)],
+                color=_colour(m),
+                ms=6,
+                capsize=3,
+                lw=1.2,
+                alpha=0.85,
+                label=label + (" (±2σ)" if cov is not None else " (no covariance)"),
+                zorder=4,
+            )
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
         ax.grid(alpha=0.3)
@@ -531,13 +664,26 @@ def sweep_surface(sigma_r: np.ndarray, tau: np.ndarray, rmse: np.ndarray, title:
     fig = _figure(6.4, 4.8)
     ax = fig.subplots()
     ax.set_facecolor("0.85")
-    im = ax.pcolormesh(np.arange(s.size + 1) - 0.5, np.arange(t.size + 1) - 0.5, r.T, cmap="viridis", shading="flat")
+    im = ax.pcolormesh(
+        np.arange(s.size + 1) - 0.5,
+        np.arange(t.size + 1) - 0.5,
+        r.T,
+        cmap="viridis",
+        shading="flat",
+    )
     ax.set_xticks(range(s.size), [f"{v:g}" for v in s], rotation=45 if s.size > 8 else 0)
     ax.set_yticks(range(t.size), [f"{v:g}" for v in t])
     if np.isfinite(r).any():
         i, j = np.unravel_index(np.nanargmin(r), r.shape)
-        ax.scatter([i], [j], marker="*", s=160, color="red", edgecolor="white",
-                   label=f"best: sigma_r {s[i]:g} m, tau {t[j]:g}, {r[i, j]:.2f} m")
+        ax.scatter(
+            [i],
+            [j],
+            marker="*",
+            s=160,
+            color="red",
+            edgecolor="white",
+            label=f"best: sigma_r {s[i]:g} m, tau {t[j]:g}, {r[i, j]:.2f} m",
+        )
         ax.legend(fontsize=8, loc="upper right")
     ax.set_xlabel("sigma_r [m]")
     ax.set_ylabel("tau (probability-mass fraction)")

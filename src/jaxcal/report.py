@@ -39,13 +39,28 @@ import numpy as np
 from jaxcal.data import MeshDataset, Result, TrajectoryDataset
 from jaxcal.errors import JaxcalError
 
-__all__ = ["PosteriorSpec", "parse_posteriors", "group_label", "write_report", "AUTO_POSTERIOR_EPOCHS"]
+__all__ = [
+    "PosteriorSpec",
+    "parse_posteriors",
+    "group_label",
+    "write_report",
+    "AUTO_POSTERIOR_EPOCHS",
+]
 
 AUTO_POSTERIOR_EPOCHS = (3, 10, 30, 100)
-TABLE_KEYS = (("share", "share", 3), ("count", "count", 0), ("mean_m", "mean [m]", 2),
-              ("median_m", "median [m]", 2), ("variance_m2", "var [m²]", 2), ("q1sigma_m", "1σ [m]", 2),
-              ("q2sigma_m", "2σ [m]", 2), ("q3sigma_m", "3σ [m]", 2), ("p25_m", "25 % [m]", 2),
-              ("p50_m", "50 % [m]", 2), ("p75_m", "75 % [m]", 2))
+TABLE_KEYS = (
+    ("share", "share", 3),
+    ("count", "count", 0),
+    ("mean_m", "mean [m]", 2),
+    ("median_m", "median [m]", 2),
+    ("variance_m2", "var [m²]", 2),
+    ("q1sigma_m", "1σ [m]", 2),
+    ("q2sigma_m", "2σ [m]", 2),
+    ("q3sigma_m", "3σ [m]", 2),
+    ("p25_m", "25 % [m]", 2),
+    ("p50_m", "50 % [m]", 2),
+    ("p75_m", "75 % [m]", 2),
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,7 +85,9 @@ def parse_posteriors(text: str | None) -> str | PosteriorSpec:
         ep = ()
     nd = tuple(n.strip() for n in nodes.split(",") if n.strip())
     if not sep or not nd or not ep or min(ep) < 0:
-        raise JaxcalError(f"--posteriors: expected auto, none or NODE,...@EPOCH,... (epochs >= 0), got {text!r}")
+        raise JaxcalError(
+            f"--posteriors: expected auto, none or NODE,...@EPOCH,... (epochs >= 0), got {text!r}"
+        )
     return PosteriorSpec(nd, ep)
 
 
@@ -126,7 +143,9 @@ def _fmt(v: Any, digits: int = 2) -> str:
 
 def _table(head: Sequence[str], rows: Sequence[Sequence[str]], cls: str = "") -> str:
     h = "".join(f"<th>{html.escape(c)}</th>" for c in head)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
+    body = "".join(
+        "<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows
+    )
     return f'<table class="{cls}"><thead><tr>{h}</tr></thead><tbody>{body}</tbody></table>'
 
 
@@ -163,8 +182,10 @@ class _Page:
         fname = f"{_slug(name)}.png"
         fig.savefig(self.out / fname, dpi=self.dpi)
         self.figures.append(fname)
-        self.parts.append(f'<figure><img src="{html.escape(fname)}" alt="{html.escape(caption)}">'
-                          f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+        self.parts.append(
+            f'<figure><img src="{html.escape(fname)}" alt="{html.escape(caption)}">'
+            f"<figcaption>{html.escape(caption)}</figcaption></figure>"
+        )
 
 
 def _ranging_section(page: _Page, ds, numbers: dict) -> None:
@@ -178,25 +199,43 @@ def _ranging_section(page: _Page, ds, numbers: dict) -> None:
     page.raw(_table(["group"] + [lab for _, lab, _ in TABLE_KEYS], rows, "num"))
     page.p("1σ / 2σ / 3σ: quantiles of |error| at 68.27 / 95.45 / 99.73 %; variance with ddof 0.")
     err, los = ranging_errors(ds)
-    page.figure(plot.ranging_histograms(err, los), "fig09_ranging_residuals",
-                "Fig. 9: signed ranging residuals, LOS / NLOS / all (log count axis).")
+    page.figure(
+        plot.ranging_histograms(err, los),
+        "fig09_ranging_residuals",
+        "Fig. 9: signed ranging residuals, LOS / NLOS / all (log count axis).",
+    )
     qq = qq_r2(ds)
     numbers["qq"] = {"r2_qq": qq["r2_qq"], "r2": qq["r2"]}
-    page.p(f"Q-Q R² = {_fmt(qq['r2_qq'], 4)}; per-measurement R² of measured against true distance = "
-           f"{_fmt(qq['r2'], 4)}.")
-    page.figure(plot.qq_plot(qq["true_q"], qq["measured_q"], qq["r2_qq"], qq["r2"]), "fig11a_qq",
-                f"Fig. 11a: Q-Q plot of measured against true distances, R² = {_fmt(qq['r2_qq'], 3)}.")
+    page.p(
+        f"Q-Q R² = {_fmt(qq['r2_qq'], 4)}; per-measurement R² of measured against true distance = "
+        f"{_fmt(qq['r2'], 4)}."
+    )
+    page.figure(
+        plot.qq_plot(qq["true_q"], qq["measured_q"], qq["r2_qq"], qq["r2"]),
+        "fig11a_qq",
+        f"Fig. 11a: Q-Q plot of measured against true distances, R² = {_fmt(qq['r2_qq'], 3)}.",
+    )
     if isinstance(ds, MeshDataset):
         pr = pairwise_rmse(ds)
         numbers["pairwise_rmse_m"] = pr
-        worst = np.dstack(np.unravel_index(np.argsort(np.nan_to_num(pr, nan=-1.0), axis=None)[::-1][:3], pr.shape))[0]
-        text = ", ".join(f"{ds.node_ids[i]}→{ds.node_ids[j]} {pr[i, j]:.1f} m" for i, j in worst if np.isfinite(pr[i, j]))
-        page.figure(plot.pairwise_rmse_matrix(pr, ds.node_ids), "fig11b_pairwise_rmse",
-                    f"Fig. 11b: pairwise ranging RMSE; largest: {text}.")
+        worst = np.dstack(
+            np.unravel_index(np.argsort(np.nan_to_num(pr, nan=-1.0), axis=None)[::-1][:3], pr.shape)
+        )[0]
+        text = ", ".join(
+            f"{ds.node_ids[i]}→{ds.node_ids[j]} {pr[i, j]:.1f} m"
+            for i, j in worst
+            if np.isfinite(pr[i, j])
+        )
+        page.figure(
+            plot.pairwise_rmse_matrix(pr, ds.node_ids),
+            "fig11b_pairwise_rmse",
+            f"Fig. 11b: pairwise ranging RMSE; largest: {text}.",
+        )
 
 
-def _mesh_section(page: _Page, ds: MeshDataset, groups: dict[str, Result], evals: dict[str, dict],
-                  numbers: dict) -> None:
+def _mesh_section(
+    page: _Page, ds: MeshDataset, groups: dict[str, Result], evals: dict[str, dict], numbers: dict
+) -> None:
     from jaxcal import plot
 
     page.h2("Calibration results")
@@ -204,19 +243,43 @@ def _mesh_section(page: _Page, ds: MeshDataset, groups: dict[str, Result], evals
     for label, ev in evals.items():
         node_rmse = np.array([n["rmse_m"] for n in ev["nodes"]])
         avail = np.array([n["availability"] for n in ev["nodes"]])
-        rows.append([label, _fmt(ev["rmse_m"]), _fmt(ev["final_rmse_m"]), _fmt(ev["aligned_rmse_m"]),
-                     _fmt(np.nanmedian(node_rmse) if np.isfinite(node_rmse).any() else np.nan),
-                     _fmt(100 * np.nanmean(avail), 1)])
-    page.raw(_table(["method/config", "RMSE [m]", "final RMSE [m]", "aligned RMSE [m]", "median node RMSE [m]",
-                     "mean availability [%]"], rows, "num"))
-    page.p("RMSE over every (node, epoch) estimate except a0, in the result's frame; final: final positions; "
-           "aligned: final positions after the best rigid motion (with reflection) onto the truth.")
+        rows.append(
+            [
+                label,
+                _fmt(ev["rmse_m"]),
+                _fmt(ev["final_rmse_m"]),
+                _fmt(ev["aligned_rmse_m"]),
+                _fmt(np.nanmedian(node_rmse) if np.isfinite(node_rmse).any() else np.nan),
+                _fmt(100 * np.nanmean(avail), 1),
+            ]
+        )
+    page.raw(
+        _table(
+            [
+                "method/config",
+                "RMSE [m]",
+                "final RMSE [m]",
+                "aligned RMSE [m]",
+                "median node RMSE [m]",
+                "mean availability [%]",
+            ],
+            rows,
+            "num",
+        )
+    )
+    page.p(
+        "RMSE over every (node, epoch) estimate except a0, in the result's frame; final: final positions; "
+        "aligned: final positions after the best rigid motion (with reflection) onto the truth."
+    )
     labels = list(evals)
     ids = ds.node_ids
     # (method, configuration) of each group, from the result (labels may be the user's own)
     mc = {lab: (r.method, _config_name(r, ds)) for lab, r in groups.items()}
     head = ["node"] + [f"{lab} RMSE [m]" for lab in labels]
-    rows = [[nid] + [_fmt(evals[lab]["nodes"][i]["rmse_m"]) for lab in labels] for i, nid in enumerate(ids)]
+    rows = [
+        [nid] + [_fmt(evals[lab]["nodes"][i]["rmse_m"]) for lab in labels]
+        for i, nid in enumerate(ids)
+    ]
     page.raw("<details><summary>per-node RMSE</summary>" + _table(head, rows, "num") + "</details>")
 
     # Fig. 10: availability, per method with configurations side by side
@@ -225,13 +288,24 @@ def _mesh_section(page: _Page, ds: MeshDataset, groups: dict[str, Result], evals
         avail: dict[str, dict[str, np.ndarray]] = {}
         for lab in tracked:
             m, conf = mc[lab]
-            avail.setdefault(m, {})[conf] = np.array([n["availability"] for n in evals[lab]["nodes"]])
-        rows = [[nid] + [_fmt(100 * avail[m][c][i], 1) for m in avail for c in avail[m]] for i, nid in enumerate(ids)]
+            avail.setdefault(m, {})[conf] = np.array(
+                [n["availability"] for n in evals[lab]["nodes"]]
+            )
+        rows = [
+            [nid] + [_fmt(100 * avail[m][c][i], 1) for m in avail for c in avail[m]]
+            for i, nid in enumerate(ids)
+        ]
         page.h2("Availability (Fig. 10)")
-        page.figure(plot.availability_bars(ids, avail), "fig10_availability",
-                    "Fig. 10: share of epochs with a position estimate per node and configuration.")
-        page.raw("<details><summary>availability [%]</summary>"
-                 + _table(["node"] + [f"{m}/{c}" for m in avail for c in avail[m]], rows, "num") + "</details>")
+        page.figure(
+            plot.availability_bars(ids, avail),
+            "fig10_availability",
+            "Fig. 10: share of epochs with a position estimate per node and configuration.",
+        )
+        page.raw(
+            "<details><summary>availability [%]</summary>"
+            + _table(["node"] + [f"{m}/{c}" for m in avail for c in avail[m]], rows, "num")
+            + "</details>"
+        )
 
     # Fig. 12 / 13: per-node distributions per method, ECDFs of all groups
     page.h2("Position errors per node (Fig. 12, 13)")
@@ -241,20 +315,36 @@ def _mesh_section(page: _Page, ds: MeshDataset, groups: dict[str, Result], evals
         m, conf = mc[lab]
         by_method.setdefault(m, {})[conf] = e
     for m, confs in by_method.items():
-        page.figure(plot.node_error_distributions(ids, confs, title=f"{m}: per-node position error over epochs"),
-                    f"fig12a_node_errors_{m}",
-                    f"Fig. 12a/13a ({m}): per-epoch position errors per node (boxes 25–75 %, whiskers 5–95 %, "
-                    "diamonds: node RMSE).")
+        page.figure(
+            plot.node_error_distributions(
+                ids, confs, title=f"{m}: per-node position error over epochs"
+            ),
+            f"fig12a_node_errors_{m}",
+            f"Fig. 12a/13a ({m}): per-epoch position errors per node (boxes 25–75 %, whiskers 5–95 %, "
+            "diamonds: node RMSE).",
+        )
     node_rmse = {lab: np.array([n["rmse_m"] for n in ev["nodes"]]) for lab, ev in evals.items()}
-    for lab, r in groups.items():  # a0 has error 0 by construction: leave it out of the distribution
+    for (
+        lab,
+        r,
+    ) in groups.items():  # a0 has error 0 by construction: leave it out of the distribution
         a = r.frame_anchors()
         if a is not None:
             node_rmse[lab] = np.delete(node_rmse[lab], a[0])
-    page.figure(plot.rmse_ecdfs(node_rmse, "node RMSE [m]", "ECDF of node RMSE (a0 excluded)"),
-                "fig12b_ecdf_node_rmse", "Fig. 12b/13b: ECDF of the per-node RMSE of every method and configuration.")
-    page.figure(plot.rmse_ecdfs({k: v for k, v in errors.items()}, "position error per epoch [m]",
-                                "ECDF of per-epoch position errors"),
-                "fig13b_ecdf_epoch_errors", "ECDF of the per-epoch position errors (every node and epoch except a0).")
+    page.figure(
+        plot.rmse_ecdfs(node_rmse, "node RMSE [m]", "ECDF of node RMSE (a0 excluded)"),
+        "fig12b_ecdf_node_rmse",
+        "Fig. 12b/13b: ECDF of the per-node RMSE of every method and configuration.",
+    )
+    page.figure(
+        plot.rmse_ecdfs(
+            {k: v for k, v in errors.items()},
+            "position error per epoch [m]",
+            "ECDF of per-epoch position errors",
+        ),
+        "fig13b_ecdf_epoch_errors",
+        "ECDF of the per-epoch position errors (every node and epoch except a0).",
+    )
 
     # final positions per frame
     page.h2("Final positions")
@@ -268,13 +358,22 @@ def _mesh_section(page: _Page, ds: MeshDataset, groups: dict[str, Result], evals
         first = next(iter(rs.values()))
         truth = truth_in_result_frame(first, ds.truth[[pos[v] for v in first.ids]])
         est = {lab: (r.position, r.covariance) for lab, r in rs.items()}
-        page.figure(plot.positions_map(truth, first.ids, est, title=conf), f"positions_{conf}",
-                    f"Final positions in frame {conf} ({first.frame}) with 95 % ellipses from the result's "
-                    "covariance, over the truth (x).")
+        page.figure(
+            plot.positions_map(truth, first.ids, est, title=conf),
+            f"positions_{conf}",
+            f"Final positions in frame {conf} ({first.frame}) with 95 % ellipses from the result's "
+            "covariance, over the truth (x).",
+        )
 
 
-def _posterior_section(page: _Page, ds: MeshDataset, groups: dict[str, Result], evals: dict[str, dict],
-                       spec: str | PosteriorSpec, numbers: dict) -> None:
+def _posterior_section(
+    page: _Page,
+    ds: MeshDataset,
+    groups: dict[str, Result],
+    evals: dict[str, dict],
+    spec: str | PosteriorSpec,
+    numbers: dict,
+) -> None:
     from jaxcal import plot
     from jaxcal.mesh.pgp import run_pgp
     from jaxcal.metrics import truth_in_result_frame
@@ -282,7 +381,11 @@ def _posterior_section(page: _Page, ds: MeshDataset, groups: dict[str, Result], 
     if spec == "none":
         return
     method = spec.method if isinstance(spec, PosteriorSpec) else "pgp"
-    cand = [(lab, r) for lab, r in groups.items() if r.method == method and r.frame_anchors() is not None]
+    cand = [
+        (lab, r)
+        for lab, r in groups.items()
+        if r.method == method and r.frame_anchors() is not None
+    ]
     if not cand:
         if isinstance(spec, PosteriorSpec):
             raise JaxcalError(f"--posteriors: no {method} result among the inputs")
@@ -293,11 +396,15 @@ def _posterior_section(page: _Page, ds: MeshDataset, groups: dict[str, Result], 
     if isinstance(spec, PosteriorSpec):
         unknown = [n for n in spec.nodes if n not in ids]
         if unknown:
-            raise JaxcalError(f"--posteriors: unknown node(s) {', '.join(unknown)} (known: {', '.join(ids)})")
+            raise JaxcalError(
+                f"--posteriors: unknown node(s) {', '.join(unknown)} (known: {', '.join(ids)})"
+            )
         nodes = list(spec.nodes)
         epochs = sorted(set(spec.epochs))
         if epochs[-1] >= ds.n_epochs:
-            raise JaxcalError(f"--posteriors: epoch {epochs[-1]} beyond the dataset's {ds.n_epochs} epochs")
+            raise JaxcalError(
+                f"--posteriors: epoch {epochs[-1]} beyond the dataset's {ds.n_epochs} epochs"
+            )
     else:
         epochs = [e for e in AUTO_POSTERIOR_EPOCHS if e < ds.n_epochs] or [ds.n_epochs - 1]
         fe = np.array([n["final_error_m"] for n in evals[lab]["nodes"]])
@@ -310,31 +417,49 @@ def _posterior_section(page: _Page, ds: MeshDataset, groups: dict[str, Result], 
     frame_ds = tuple(pos[ids[a]] for a in (a0, a1, a2))
     k = epochs[-1] + 1
     short = dataclasses.replace(
-        ds, time=ds.time[:k], range=ds.range[:k],
-        fp_rssi=None if ds.fp_rssi is None else ds.fp_rssi[:k], rx_rssi=None if ds.rx_rssi is None else ds.rx_rssi[:k],
+        ds,
+        time=ds.time[:k],
+        range=ds.range[:k],
+        fp_rssi=None if ds.fp_rssi is None else ds.fp_rssi[:k],
+        rx_rssi=None if ds.rx_rssi is None else ds.rx_rssi[:k],
         configs=(("report", frame_ds),),
     )
     params = dict(res.params) if res.params else None
     note = ""
     try:
         _, info = run_pgp(short, params, "report", mode=res.method, snapshot_epochs=epochs)
-    except JaxcalError as e:  # parameters of another version: the defaults still show the filter's behaviour
+    except (
+        JaxcalError
+    ) as e:  # parameters of another version: the defaults still show the filter's behaviour
         _, info = run_pgp(short, None, "report", mode=res.method, snapshot_epochs=epochs)
         note = f" (the result's parameters were not accepted: {e}; default parameters used)"
     rows = [pos[n] for n in nodes]
     grids = info.snapshots[:, rows]
-    truth = truth_in_result_frame(res, ds.truth[[pos[v] for v in ids]])[[ids.index(n) for n in nodes]]
-    numbers["posteriors"] = {"result": lab, "nodes": nodes, "epochs": list(map(int, info.snapshot_epochs))}
+    truth = truth_in_result_frame(res, ds.truth[[pos[v] for v in ids]])[
+        [ids.index(n) for n in nodes]
+    ]
+    numbers["posteriors"] = {
+        "result": lab,
+        "nodes": nodes,
+        "epochs": list(map(int, info.snapshot_epochs)),
+    }
     page.h2("Posterior grids (Fig. 6 style)")
     est = info.raw_track[info.snapshot_epochs][:, rows]
-    page.figure(plot.posterior_grids(info.axis_m, grids, nodes, info.snapshot_epochs, truth, est),
-                f"fig06_posteriors_{_slug(lab)}",
-                f"Posterior grids of {', '.join(nodes)} at epochs {', '.join(map(str, info.snapshot_epochs))} "
-                f"({lab}, re-run on the first {k} epochs){note}.")
+    page.figure(
+        plot.posterior_grids(info.axis_m, grids, nodes, info.snapshot_epochs, truth, est),
+        f"fig06_posteriors_{_slug(lab)}",
+        f"Posterior grids of {', '.join(nodes)} at epochs {', '.join(map(str, info.snapshot_epochs))} "
+        f"({lab}, re-run on the first {k} epochs){note}.",
+    )
 
 
-def _trajectory_section(page: _Page, ds: TrajectoryDataset, groups: dict[str, Result], evals: dict[str, dict],
-                        numbers: dict) -> None:
+def _trajectory_section(
+    page: _Page,
+    ds: TrajectoryDataset,
+    groups: dict[str, Result],
+    evals: dict[str, dict],
+    numbers: dict,
+) -> None:
     from jaxcal import plot
     from jaxcal.metrics import truth_in_result_frame
 
@@ -344,18 +469,27 @@ def _trajectory_section(page: _Page, ds: TrajectoryDataset, groups: dict[str, Re
     page.raw(_table(["method/frame", "mean anchor error [m]"], rows, "num"))
     first = next(iter(groups.values()))
     head = ["anchor"] + [f"{lab} error [m]" for lab in labels]
-    rows = [[a] + [_fmt(evals[lab]["anchors"][i]["error_m"]) for lab in labels] for i, a in enumerate(first.ids)]
+    rows = [
+        [a] + [_fmt(evals[lab]["anchors"][i]["error_m"]) for lab in labels]
+        for i, a in enumerate(first.ids)
+    ]
     page.raw(_table(head, rows, "num"))
     truth = None
     if ds.anchor_truth is not None:
         pos = {v: i for i, v in enumerate(ds.anchor_ids)}
         truth = truth_in_result_frame(first, ds.anchor_truth[[pos[v] for v in first.ids]])
     est = {lab: (r.position, r.covariance) for lab, r in groups.items()}
-    page.figure(plot.trajectory_anchors(ds.pose_position, truth, first.ids, est), "anchors_trajectory",
-                "Estimated anchors (±2σ from the result's covariance) over the platform path and the surveyed anchors.")
+    page.figure(
+        plot.trajectory_anchors(ds.pose_position, truth, first.ids, est),
+        "anchors_trajectory",
+        "Estimated anchors (±2σ from the result's covariance) over the platform path and the surveyed anchors.",
+    )
     errs = {lab: np.array([a["error_m"] for a in ev["anchors"]]) for lab, ev in evals.items()}
-    page.figure(plot.rmse_ecdfs(errs, "anchor error [m]", "ECDF of anchor errors", log_x=False),
-                "ecdf_anchor_errors", "ECDF of the anchor errors per method.")
+    page.figure(
+        plot.rmse_ecdfs(errs, "anchor error [m]", "ECDF of anchor errors", log_x=False),
+        "ecdf_anchor_errors",
+        "ECDF of the anchor errors per method.",
+    )
 
 
 _CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
@@ -403,8 +537,10 @@ def write_report(
         raise JaxcalError(f"labels: {len(labels)} given for {len(results)} results")
     for r in results:
         if mesh != (r.frame_anchors() is not None):
-            raise JaxcalError(f"result {r.name or r.method!r} (frame {r.frame}) does not fit a "
-                              f"{'mesh' if mesh else 'trajectory'} truth dataset")
+            raise JaxcalError(
+                f"result {r.name or r.method!r} (frame {r.frame}) does not fit a "
+                f"{'mesh' if mesh else 'trajectory'} truth dataset"
+            )
     groups: dict[str, Result] = {}
     for i, r in enumerate(results):
         lab = labels[i] if labels is not None else group_label(r, ds)
@@ -434,22 +570,49 @@ def write_report(
         numbers["sweeps"] = []
         for i, sw in enumerate(sweeps):
             r = np.asarray(sw["rmse"], dtype=np.float64)
-            s, t = np.asarray(sw["sigma_r"], dtype=np.float64), np.asarray(sw["tau"], dtype=np.float64)
+            s, t = (
+                np.asarray(sw["sigma_r"], dtype=np.float64),
+                np.asarray(sw["tau"], dtype=np.float64),
+            )
             if r.shape != (s.size, t.size):
-                raise JaxcalError(f"sweep {i}: rmse shape {r.shape} is not (sigma_r, tau) = ({s.size}, {t.size})")
+                raise JaxcalError(
+                    f"sweep {i}: rmse shape {r.shape} is not (sigma_r, tau) = ({s.size}, {t.size})"
+                )
             best = np.unravel_index(np.nanargmin(r), r.shape) if np.isfinite(r).any() else None
-            numbers["sweeps"].append({"title": sw.get("title", ""), "best": None if best is None else {
-                "sigma_r_m": float(s[best[0]]), "tau": float(t[best[1]]), "rmse_m": float(r[best])}})
-            page.figure(plot.sweep_surface(s, t, r, sw.get("title", "")), f"sweep_{i}",
-                        f"RMSE over sigma_r × tau{': ' + sw['title'] if sw.get('title') else ''}.")
+            numbers["sweeps"].append(
+                {
+                    "title": sw.get("title", ""),
+                    "best": None
+                    if best is None
+                    else {
+                        "sigma_r_m": float(s[best[0]]),
+                        "tau": float(t[best[1]]),
+                        "rmse_m": float(r[best]),
+                    },
+                }
+            )
+            page.figure(
+                plot.sweep_surface(s, t, r, sw.get("title", "")),
+                f"sweep_{i}",
+                f"RMSE over sigma_r × tau{': ' + sw['title'] if sw.get('title') else ''}.",
+            )
     numbers["figures"] = page.figures
     head = title or f"jaxcal report: {ds.name}"
-    meta = (f"dataset {ds.name}: " + (f"{ds.n_nodes} nodes, {ds.n_epochs} epochs" if mesh else
-                                      f"{len(ds.anchor_ids)} anchors, {ds.range.size:,} ranges")
-            + f"; results: {', '.join(groups) or 'none'}")
-    doc = (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(head)}</title>"
-           f"<style>{_CSS}</style></head><body><h1>{html.escape(head)}</h1><p>{html.escape(meta)}</p>"
-           + "\n".join(page.parts) + "</body></html>\n")
+    meta = (
+        f"dataset {ds.name}: "
+        + (
+            f"{ds.n_nodes} nodes, {ds.n_epochs} epochs"
+            if mesh
+            else f"{len(ds.anchor_ids)} anchors, {ds.range.size:,} ranges"
+        )
+        + f"; results: {', '.join(groups) or 'none'}"
+    )
+    doc = (
+        f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(head)}</title>"
+        f"<style>{_CSS}</style></head><body><h1>{html.escape(head)}</h1><p>{html.escape(meta)}</p>"
+        + "\n".join(page.parts)
+        + "</body></html>\n"
+    )
     (out / "report.json").write_text(json.dumps(_clean(numbers), indent=1, allow_nan=False))
     index = out / "index.html"
     index.write_text(doc, encoding="utf-8")

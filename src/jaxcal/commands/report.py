@@ -11,13 +11,25 @@ from __future__ import annotations
 
 def add_arguments(p) -> None:
     p.add_argument("results", nargs="+", metavar="RESULT.h5", help="result files of one dataset")
-    p.add_argument("--truth", required=True, metavar="DATASET.h5", help="the dataset with ground truth")
+    p.add_argument(
+        "--truth", required=True, metavar="DATASET.h5", help="the dataset with ground truth"
+    )
     p.add_argument("-o", "--output", required=True, metavar="DIR", help="folder to write (created)")
-    p.add_argument("--posteriors", default="auto",
-                   help="posterior grids: auto (default), none, or NODE,...@EPOCH,... (re-runs PGP on those epochs)")
-    p.add_argument("--label", action="append", default=None, metavar="TEXT",
-                   help="label of each result in order (repeat; default method/configuration)")
-    p.add_argument("--json", action="store_true", help="print the report's numbers as one JSON object")
+    p.add_argument(
+        "--posteriors",
+        default="auto",
+        help="posterior grids: auto (default), none, or NODE,...@EPOCH,... (re-runs PGP on those epochs)",
+    )
+    p.add_argument(
+        "--label",
+        action="append",
+        default=None,
+        metavar="TEXT",
+        help="label of each result in order (repeat; default method/configuration)",
+    )
+    p.add_argument(
+        "--json", action="store_true", help="print the report's numbers as one JSON object"
+    )
 
 
 def run(args) -> int:
