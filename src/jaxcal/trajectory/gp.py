@@ -23,7 +23,7 @@ Anchor search (the paper's iterative cuboid search): a regular G^3 grid in a cub
 (bounding box of the anchor's tag positions plus `margin_m`); the `top_k` (10) best grid samples are
 averaged, the cuboid is shrunk by `shrink` around that average, and this repeats until the half size
 is below `tol_m` (a static number of rounds, `lax.scan`). When an anchor's tag positions are planar
-(z spread < `planar_tol_m`), z is not observable from positions in the plane: the search runs in the
+(`ls.is_planar`), z is not observable from positions in the plane: the search runs in the
 plane and the height above it is the predicted range at the found point (side `side`).
 
 Large recordings: the training set of each anchor is a stratified subsample by measured range
@@ -56,7 +56,7 @@ from jaxtyping import Array, Bool, Float
 from jaxcal.data import Result
 from jaxcal.errors import JaxcalError
 from jaxcal.params import with_overrides
-from jaxcal.trajectory.ls import finish, in_float64
+from jaxcal.trajectory.ls import finish, in_float64, is_planar
 
 __all__ = [
     "GPParams",
@@ -88,7 +88,7 @@ class GPParams(eqx.Module):
         margin_m: the initial cuboid is the data bounding box grown by this [m].
         stages: 1 = one GP per anchor; 2 = then refit on the `n_train` shortest ranges and search again
             around the first estimate (the paper's coarse-to-fine "iterative GP").
-        min_ranges, planar_tol_m, side, order, knot_dt_s, max_gap_s, time_offset_s, estimate_offset,
+        min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s, max_gap_s, time_offset_s, estimate_offset,
         max_offset_s: as for `ls`.
     """
 
@@ -107,6 +107,7 @@ class GPParams(eqx.Module):
     stages: int = 2
     min_ranges: int = 10
     planar_tol_m: float = 0.3
+    planar_ratio: float = 0.05
     side: float = 1.0
     order: int = 4
     knot_dt_s: float = 0.0
@@ -403,7 +404,11 @@ def calibrate(dataset, params=None, config=None) -> Result:
     mask = np.asarray(groups.mask)
     a_n = pos.shape[0]
     n = max(1, min(p.n_train, int(mask.sum(axis=1).max())))
-    planar = np.array([mask[a].any() and pos[a, mask[a], 2].std() < p.planar_tol_m for a in range(a_n)])
+    planar = np.array([
+        bool(mask[a].any()) and bool(is_planar(pos[a, mask[a], 2].std(), np.linalg.norm(pos[a, mask[a], :2].std(axis=0)),
+                                               p.planar_tol_m, p.planar_ratio))
+        for a in range(a_n)
+    ])
     grid_z = 1 if planar.all() else p.grid
     est = cov = hyp = None
     for stage in range(p.stages):

@@ -2,7 +2,7 @@
 
 For tag positions p_i and ranges r_i, |p_i - a|^2 = r_i^2 is linear in (a, c = |a|^2):
 `-2 p_i . a + c = r_i^2 - |p_i|^2` (positions centred first for conditioning). When the tag positions
-of an anchor are (nearly) planar (z spread below `planar_tol_m`) the z column is degenerate; then the
+of an anchor are (nearly) planar (`is_planar`) the z column is degenerate; then the
 2-D problem in (a_x, a_y, c' = |a_xy|^2 + h^2) is solved and the height above the platform plane is
 h = sqrt(c' - |a_xy|^2), placed on the side `side` (+1 = above the tags). The covariance is
 s^2 (A^T A)^-1 of the linear system (s^2 = residual variance of the linear equations), propagated to
@@ -41,7 +41,8 @@ class LSParams(eqx.Module):
 
     Attributes:
         min_ranges: anchors with fewer valid ranges get no estimate (NaN).
-        planar_tol_m: tag z standard deviation [m] below which an anchor's data count as planar.
+        planar_tol_m, planar_ratio: an anchor's tag positions count as planar when their z standard
+            deviation is below planar_tol_m [m] or below planar_ratio x their horizontal one.
         side: +1 anchors above the platform plane, -1 below (planar case only).
         order, knot_dt_s, max_gap_s: pose B-spline (order 4 = cubic; 0 = automatic).
         time_offset_s, estimate_offset, max_offset_s: pose minus range clock offset [s] and its search.
@@ -49,6 +50,7 @@ class LSParams(eqx.Module):
 
     min_ranges: int = 10
     planar_tol_m: float = 0.3
+    planar_ratio: float = 0.05
     side: float = 1.0
     order: int = 4
     knot_dt_s: float = 0.0
@@ -73,7 +75,7 @@ def _solve(a_mat, b_vec, mask):
 
 def multilaterate(
     pos: Float[Array, "n 3"], rng: Float[Array, " n"], mask: Bool[Array, " n"],
-    planar_tol_m: float = 0.3, side: float = 1.0,
+    planar_tol_m: float = 0.3, side: float = 1.0, planar_ratio: float = 0.05,
 ) -> tuple[Float[Array, " 3"], Float[Array, "3 3"]]:
     """Linear LS position [m] and covariance [m^2] of one anchor from (masked) tag positions and ranges."""
     w = mask.astype(pos.dtype)
@@ -81,6 +83,7 @@ def multilaterate(
     centre = jnp.sum(pos * w[:, None], axis=0) / n
     q = (pos - centre) * w[:, None]
     zstd = jnp.sqrt(jnp.sum(q[:, 2] ** 2) / n)
+    hstd = jnp.sqrt(jnp.sum(q[:, :2] ** 2) / n)
     rhs = rng**2 - jnp.sum(q**2, axis=-1)
     ones = jnp.ones_like(rng)
     # 3-D: unknowns (a, c).
@@ -95,15 +98,21 @@ def multilaterate(
     cov2 = jnp.zeros((3, 3)).at[:2, :2].set(c2[:2, :2])
     cxz = c2[:2, :] @ g
     cov2 = cov2.at[:2, 2].set(cxz).at[2, :2].set(cxz).at[2, 2].set(g @ c2 @ g)
-    planar = zstd < planar_tol_m
+    planar = is_planar(zstd, hstd, planar_tol_m, planar_ratio)
     est = jnp.where(planar, est2, est3) + centre
     cov = jnp.where(planar, cov2, cov3)
     return est, cov
 
 
-def multilaterate_all(pos, rng, mask, planar_tol_m: float = 0.3, side: float = 1.0):
+def multilaterate_all(pos, rng, mask, planar_tol_m: float = 0.3, side: float = 1.0, planar_ratio: float = 0.05):
     """`multilaterate` vmapped over anchors: (A, n, 3), (A, n), (A, n) -> (A, 3), (A, 3, 3)."""
-    return jax.vmap(lambda p, r, m: multilaterate(p, r, m, planar_tol_m, side))(pos, rng, mask)
+    return jax.vmap(lambda p, r, m: multilaterate(p, r, m, planar_tol_m, side, planar_ratio))(pos, rng, mask)
+
+
+def is_planar(z_std, h_std, planar_tol_m: float, planar_ratio: float):
+    """Whether tag positions with these z and horizontal spreads [m] count as planar (z unobservable
+    by the linear system): z spread below `planar_tol_m` or below `planar_ratio` x horizontal spread."""
+    return (z_std < planar_tol_m) | (z_std < planar_ratio * h_std)
 
 
 @in_float64
@@ -121,8 +130,8 @@ def calibrate(dataset, params=None, config=None) -> Result:
     p = with_overrides(LSParams(), params)
     groups, info = prepare(dataset, p.order, p.knot_dt_s, p.max_gap_s, p.time_offset_s,
                            p.estimate_offset, p.max_offset_s)
-    est, cov = jax.jit(multilaterate_all, static_argnums=(3, 4))(
-        groups.position, groups.range, groups.mask, p.planar_tol_m, p.side)
+    est, cov = jax.jit(multilaterate_all, static_argnums=(3, 4, 5))(
+        groups.position, groups.range, groups.mask, p.planar_tol_m, p.side, p.planar_ratio)
     return finish(dataset, "ls", p, groups, est, cov, info)
 
 

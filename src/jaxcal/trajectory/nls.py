@@ -33,7 +33,7 @@ class NLSParams(eqx.Module):
         min_scale_m: floor of the automatic scale [m].
         bias: estimate a constant range bias per anchor.
         n_irls: reweighting rounds. max_steps: Levenberg-Marquardt steps per round.
-        min_ranges, planar_tol_m, side, order, knot_dt_s, max_gap_s, time_offset_s, estimate_offset,
+        min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s, max_gap_s, time_offset_s, estimate_offset,
         max_offset_s: as for `ls`.
     """
 
@@ -45,6 +45,7 @@ class NLSParams(eqx.Module):
     max_steps: int = 100
     min_ranges: int = 10
     planar_tol_m: float = 0.3
+    planar_ratio: float = 0.05
     side: float = 1.0
     order: int = 4
     knot_dt_s: float = 0.0
@@ -121,7 +122,7 @@ def _solve_all(pos, rng, mask, p: NLSParams):
     """All anchors at once: `ls` initialisation, then `solve_anchor` (vmap); `p` is static."""
 
     def one(ps, r, m):
-        init, _ = multilaterate(ps, r, m, p.planar_tol_m, p.side)
+        init, _ = multilaterate(ps, r, m, p.planar_tol_m, p.side, p.planar_ratio)
         init = jnp.where(jnp.isfinite(init), init, 0.0)
         return solve_anchor(ps, r, m, init, p)
 
