@@ -240,13 +240,19 @@ def availability_bars(ids: Sequence[str], availability: Mapping[str, Mapping[str
     return fig
 
 
-def node_error_distributions(ids: Sequence[str], errors: Mapping[str, np.ndarray], title: str = ""):
+def node_error_distributions(
+    ids: Sequence[str],
+    errors: Mapping[str, np.ndarray],
+    title: str = "",
+    origin: Mapping[str, int] | None = None,
+):
     """Fig. 12a / 13a: per-node distribution of position errors over epochs, configurations side by side.
 
     Args:
         ids: (N,) node ids.
         errors: configuration -> (K, N) position error per epoch and node [m] (NaN: no estimate).
         title: panel title (e.g. the method).
+        origin: configuration -> index of its a0 (the frame's origin, no error by construction), or None.
 
     Returns:
         Figure: boxes (5-95 % whiskers) of the per-epoch errors on a log axis, with each node's RMSE
@@ -274,7 +280,7 @@ def node_error_distributions(ids: Sequence[str], errors: Mapping[str, np.ndarray
                 ax.text(
                     pos[i],
                     0.02,
-                    "none",
+                    "a0" if origin is not None and origin.get(conf) == i else "none",
                     transform=ax.get_xaxis_transform(),
                     ha="center",
                     va="bottom",
@@ -330,7 +336,7 @@ def node_error_distributions(ids: Sequence[str], errors: Mapping[str, np.ndarray
     ax.set_ylabel("position error per epoch [m]")
     ax.set_title(
         (title + "\n" if title else "")
-        + "boxes 25-75 %, whiskers 5-95 %; 'none': no estimate (a0: origin)",
+        + "boxes 25-75 %, whiskers 5-95 %; 'none': no estimate; a0: origin of the frame",
         fontsize=10,
     )
     ax.legend(handles=handles, fontsize=8, loc="upper left", ncols=len(handles))

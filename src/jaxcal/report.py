@@ -311,13 +311,15 @@ def _mesh_section(
     page.h2("Position errors per node (Fig. 12, 13)")
     errors = {lab: _epoch_errors(r, ds) for lab, r in groups.items()}
     by_method: dict[str, dict[str, np.ndarray]] = {}
+    origin: dict[str, int] = {}
     for lab, e in errors.items():
         m, conf = mc[lab]
         by_method.setdefault(m, {})[conf] = e
+        origin[conf] = groups[lab].frame_anchors()[0]
     for m, confs in by_method.items():
         page.figure(
             plot.node_error_distributions(
-                ids, confs, title=f"{m}: per-node position error over epochs"
+                ids, confs, title=f"{m}: per-node position error over epochs", origin=origin
             ),
             f"fig12a_node_errors_{m}",
             f"Fig. 12a/13a ({m}): per-epoch position errors per node (boxes 25–75 %, whiskers 5–95 %, "
