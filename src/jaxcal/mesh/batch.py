@@ -62,7 +62,7 @@ class BatchParams(eqx.Module):
         nlos_weight, nlos_mean_m: mixture share and mean excess length of NLOS ranges.
         outlier_weight, outlier_span_m: mixture share and span [m] of the uniform outlier floor.
         init: `multi` (classical MDS, SMACOF and random SMACOF starts; default), `cmds`, `smacof`.
-        n_starts: number of random SMACOF starts (with `init=multi`).
+        n_starts: number of random SMACOF starts (with `init=multi`; at least N - 2 when relocating).
         smacof_iters: Guttman transforms per SMACOF run.
         solver: `lm` (Levenberg-Marquardt, default) or `gn` (Gauss-Newton).
         max_steps: iteration limit of the least-squares solver.
@@ -354,16 +354,16 @@ def _initial_starts(d_pair: Array, w_pair: Array, key: Array, dim: int, init: st
 
 @eqx.filter_jit
 def _fit_starts(y0s: _State, obs: Observations, nb: _Numbers, solver: str, tol: float, max_steps: int,
-                gnc_stages: int = 0):
+                factors: Array | None = None):
     """Refine every start (a batched `_State`; vmapped least squares); returns final states and costs.
 
-    With `gnc_stages` > 0 the loss scale is graduated (graduated non-convexity): the fit is solved
-    with sigma_r * 2^(G-1), ..., 2 sigma_r, sigma_r in turn, each warm-started from the last. A wide
+    With `factors` (G,) the loss scale is graduated (graduated non-convexity): the fit is solved
+    with sigma_r * factors[0], ..., sigma_r * factors[-1] in turn, each warm-started from the last. A wide
     scale first pulls every start towards the bulk of the data before a narrow, redescending loss
     decides which ranges are outliers, so gross errors in the start do not trap the fit.
     """
     args = (obs, nb)
-    factors = 2.0 ** jnp.arange(max(gnc_stages, 1) - 1, -1, -1, dtype=float)
+    factors = jnp.ones(1) if factors is None else factors
 
     def one(y0):
         def stage(y, factor):
@@ -553,11 +553,16 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     w_pair = np.isfinite(d_pair).astype(float)
     nb = _Numbers.of(p)
     key = jax.random.PRNGKey(p.seed)
+    # at least m - 2 random starts, so that the relocation below (m starts) has the same batch size
+    n_random = max(p.n_starts, m - 2) if p.init == "multi" and p.relocate_rounds > 0 else p.n_starts
     x0s = _initial_starts(jnp.asarray(np.nan_to_num(d_pair)), jnp.asarray(w_pair), key, p.dim, p.init,
-                          p.n_starts, p.smacof_iters)
+                          n_random, p.smacof_iters)
+    if x0s.shape[0] < m and p.relocate_rounds > 0:  # init=cmds or smacof: pad with copies
+        x0s = jnp.concatenate([x0s, x0s[:1].repeat(m - x0s.shape[0], axis=0)])
     s_count = x0s.shape[0]
     y0s = _State(x0s, jnp.zeros(s_count), jnp.zeros((s_count, m)))
-    states, costs = _fit_starts(y0s, obs_med, nb, p.solver, p.tol, p.max_steps, p.gnc_stages)
+    gnc = jnp.asarray(2.0 ** np.arange(p.gnc_stages - 1, -1, -1), dtype=float)
+    states, costs = _fit_starts(y0s, obs_med, nb, p.solver, p.tol, p.max_steps, gnc)
     costs = np.where(np.isfinite(np.asarray(costs)), np.asarray(costs), np.inf)
     best = int(np.argmin(costs))
     state = jax.tree.map(lambda a: a[best], states)
@@ -566,7 +571,10 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     grid_n = p.relocate_grid if p.dim == 2 else max(p.relocate_grid // 3, 2)
     for _ in range(p.relocate_rounds):
         starts = _relocation_starts(state, d_j, w_j, nb, grid_n)
-        moved, moved_costs = _fit_starts(starts, obs_med, nb, p.solver, p.tol, p.max_steps)
+        # same batch size and stage count as the multi-start fit: one compilation serves both
+        starts = jax.tree.map(lambda a: jnp.concatenate([a, a[:1].repeat(s_count - m, axis=0)]), starts)
+        moved, moved_costs = _fit_starts(starts, obs_med, nb, p.solver, p.tol, p.max_steps,
+                                         jnp.ones_like(gnc))
         moved_costs = np.where(np.isfinite(np.asarray(moved_costs)), np.asarray(moved_costs), np.inf)
         k = int(np.argmin(moved_costs))
         if not moved_costs[k] < cost - 1e-9 * max(1.0, abs(cost)):
