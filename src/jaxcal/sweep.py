@@ -1,0 +1,323 @@
+"""Parameter sweeps of the grid filter: parameters x scenarios x seeds as vmapped, sharded batches.
+
+A sweep is a list of runs (`plan`): every scenario (a simulated scenario with its seeds, or a
+dataset) crossed with the product of the swept parameter values. Swept parameters are the numeric
+fields of `pgp.FilterParams` (sigma_r, sigma_v, tau, r_est, v, alpha, p_out): they are arrays, so a
+whole batch of values is one `jax.vmap` of the jitted filter, and new values never recompile. Fixed
+parameters (`cell_m`, `top_k`, `max_hyp`, ...) are static: one compilation per group.
+
+Runs whose datasets have the same number of nodes and epochs form a group and run on one common
+grid: the largest of their `prepare` grids (a dataset whose own grid is smaller gets a few more
+cells of uniform prior at the border; with a single dataset the grid is exactly `run_pgp`'s).
+
+Batches are padded to a multiple of the device count and their leading axis is sharded over a 1-D
+mesh of `jax.devices()` (`NamedSharding`); under `jax.distributed` the mesh spans the devices of all
+processes, every process builds the same batches and computes its own shards, and the metrics are
+gathered to every process (`process_allgather`), so that process 0 can write them.
+
+Metrics per run (`METRICS`, all in the configuration frame, a0 excluded): `rmse_m` (every localised
+epoch estimate, as `jaxcal evaluate`), `final_rmse_m` (the final positions), `availability` (share of
+(epoch, node) estimates that exist), `localised` (nodes with a final estimate, of N - 1) and `nlpl`
+(negative log predictive likelihood of the ranges, nats per range factor, `tune.neg_log_predictive`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+from collections.abc import Iterator, Mapping, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from jaxcal.data import MeshDataset
+from jaxcal.errors import JaxcalError
+from jaxcal.mesh import grid as G
+from jaxcal.mesh import pgp
+from jaxcal.params import with_overrides
+from jaxcal.tune import final_rmse, grid_span_m, neg_log_predictive, track_rmse, truth_in_filter_order, window
+
+__all__ = [
+    "SWEEPABLE",
+    "METRICS",
+    "Scenario",
+    "SweepSpec",
+    "parse_spec",
+    "Plan",
+    "plan",
+    "Group",
+    "build_groups",
+    "run_metrics",
+    "run_batch",
+    "execute",
+]
+
+SWEEPABLE = ("tau", "r_est", "sigma_r", "v", "sigma_v", "alpha", "p_out")
+METRICS = ("rmse_m", "final_rmse_m", "availability", "localised", "nlpl")
+
+
+@dataclasses.dataclass(frozen=True)
+class Scenario:
+    """One source of datasets: `simulate` (a scenario name, one dataset per seed) or `file` (a path)."""
+
+    label: str
+    simulate: str | None
+    file: str | None
+    config: str | None
+    seeds: tuple[int, ...]
+    overrides: tuple[tuple[str, object], ...] = ()
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepSpec:
+    """A parsed sweep specification (see docs/cluster.md for the TOML form).
+
+    Attributes:
+        method: "pgp" or "parametric". epochs: window (first K epochs) or None for all.
+        params: fixed parameter overrides of `PGPParams`. grid: swept name -> values.
+        scenarios: the dataset sources. batch_size: runs per batch (rounded up to the device count).
+    """
+
+    method: str
+    epochs: int | None
+    params: tuple[tuple[str, object], ...]
+    grid: tuple[tuple[str, tuple[float, ...]], ...]
+    scenarios: tuple[Scenario, ...]
+    batch_size: int = 16
+
+
+def _need(ok: bool, msg: str) -> None:
+    if not ok:
+        raise JaxcalError(f"sweep spec: {msg}")
+
+
+def parse_spec(doc: Mapping) -> SweepSpec:
+    """Validate a sweep specification (the dict of a TOML file) and return a `SweepSpec`."""
+    known = {"method", "epochs", "batch_size", "params", "grid", "scenarios"}
+    extra = set(doc) - known
+    _need(not extra, f"unknown keys {sorted(extra)} (known: {sorted(known)})")
+    method = doc.get("method", "pgp")
+    _need(method in ("pgp", "parametric"), f"method: pgp or parametric, got {method!r}")
+    epochs = doc.get("epochs")
+    _need(epochs is None or (isinstance(epochs, int) and epochs >= 1), f"epochs: an integer >= 1, got {epochs!r}")
+    bs = doc.get("batch_size", 16)
+    _need(isinstance(bs, int) and bs >= 1, f"batch_size: an integer >= 1, got {bs!r}")
+    params = dict(doc.get("params", {}))
+    swept = set(doc.get("grid", {}))
+    _need(not (swept & set(params)), f"parameters both fixed and swept: {sorted(swept & set(params))}")
+    with_overrides(pgp.PGPParams(), params)  # unknown names and bad types fail here
+    grid = []
+    for name, vals in dict(doc.get("grid", {})).items():
+        _need(name in SWEEPABLE, f"grid.{name}: only {', '.join(SWEEPABLE)} can be swept (others recompile)")
+        vals = vals if isinstance(vals, list) else [vals]
+        _need(len(vals) >= 1 and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in vals),
+              f"grid.{name}: a list of numbers")
+        for v in vals:  # the same range checks as a single run
+            pgp._validate(with_overrides(pgp.PGPParams(), {**params, name: float(v)}))
+        grid.append((name, tuple(float(v) for v in vals)))
+    scen = doc.get("scenarios", [])
+    _need(isinstance(scen, list) and len(scen) >= 1, "at least one [[scenarios]] table")
+    out = []
+    for k, s in enumerate(scen):
+        _need(isinstance(s, dict), f"scenarios[{k}]: a table")
+        extra = set(s) - {"simulate", "file", "config", "seeds", "label", "overrides"}
+        _need(not extra, f"scenarios[{k}]: unknown keys {sorted(extra)}")
+        _need(("simulate" in s) != ("file" in s), f"scenarios[{k}]: exactly one of simulate, file")
+        seeds = s.get("seeds", [0] if "simulate" in s else [-1])
+        seeds = seeds if isinstance(seeds, list) else [seeds]
+        _need(all(isinstance(x, int) for x in seeds) and seeds, f"scenarios[{k}].seeds: a list of integers")
+        _need("file" not in s or "seeds" not in s, f"scenarios[{k}]: seeds only apply to simulate")
+        label = str(s.get("label", s.get("simulate") or s.get("file")))
+        out.append(Scenario(label, s.get("simulate"), s.get("file"), s.get("config"), tuple(seeds),
+                            tuple(sorted(dict(s.get("overrides", {})).items()))))
+    return SweepSpec(method, epochs, tuple(sorted(params.items())), tuple(grid), tuple(out), bs)
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """The runs of a sweep in a fixed order (scenario, seed, then the parameter product).
+
+    Attributes:
+        dataset_of: (R,) index into `datasets` (pairs (scenario index, seed)).
+        datasets: the distinct (scenario index, seed) pairs.
+        values: swept name -> (R,) value of every run.
+    """
+
+    dataset_of: np.ndarray
+    datasets: tuple[tuple[int, int], ...]
+    values: dict
+
+    @property
+    def n_runs(self) -> int:
+        return int(self.dataset_of.shape[0])
+
+
+def plan(spec: SweepSpec) -> Plan:
+    """Expand a spec into its runs."""
+    names = [n for n, _ in spec.grid]
+    combos = list(itertools.product(*(v for _, v in spec.grid))) or [()]
+    ds, ds_of, vals = [], [], {n: [] for n in names}
+    for si, sc in enumerate(spec.scenarios):
+        for seed in sc.seeds:
+            ds.append((si, seed))
+            for c in combos:
+                ds_of.append(len(ds) - 1)
+                for n, v in zip(names, c, strict=True):
+                    vals[n].append(v)
+    return Plan(np.asarray(ds_of, np.int64), tuple(ds), {n: np.asarray(v, np.float64) for n, v in vals.items()})
+
+
+class Group(eqx.Module):
+    """Datasets sharing one compiled filter: common static config, stacked per-dataset arrays."""
+
+    cfg: pgp.FilterConfig
+    base: pgp.FilterParams
+    inp: pgp.FilterInputs  # leading axis: dataset within the group
+    logpost0: Float[Array, "d nodes nx ny"]
+    truth: Float[Array, "d nodes 2"]
+    members: tuple[int, ...] = eqx.field(static=True)  # indices into Plan.datasets
+    span_m: float = eqx.field(static=True)
+
+
+def build_groups(
+    datasets: Sequence[tuple[MeshDataset, str | None]], spec: SweepSpec
+) -> tuple[list[Group], np.ndarray]:
+    """Prepare every dataset and group those with equal shapes on a common grid.
+
+    Args:
+        datasets: one (dataset, config name) per `Plan.datasets` entry.
+        spec: the sweep spec (fixed parameters, method, epochs).
+
+    Returns:
+        (groups, group_of): `group_of[d]` is the group of dataset d.
+    """
+    params = with_overrides(pgp.PGPParams(), dict(spec.params))
+    prepared = []
+    for ds, config in datasets:
+        if ds.n_epochs == 0:
+            raise JaxcalError(f"{ds.name}: no epochs")
+        w = window(ds, spec.epochs)
+        cfg, prm, inp, lp0, order = pgp.prepare(w, params, config, spec.method)
+        prepared.append((w, config, cfg, prm, inp, order))
+    keys: dict[tuple[int, int], list[int]] = {}
+    for d, (w, *_rest) in enumerate(prepared):
+        keys.setdefault((w.n_nodes, w.n_epochs), []).append(d)
+    groups, group_of = [], np.zeros(len(prepared), np.int64)
+    for members in keys.values():
+        grid = max((prepared[d][2].grid for d in members), key=lambda g: g.n_half)
+        cfg = dataclasses.replace(prepared[members[0]][2], grid=grid)
+        inps, lps, truths = [], [], []
+        for d in members:
+            w, config, _, prm, inp, order = prepared[d]
+            mask = jnp.asarray(G.region_masks(grid, w.n_nodes))
+            lp0 = jnp.where(mask, 0.0, -jnp.inf).astype(prm.sigma_r.dtype)
+            lps.append(lp0 - jax.nn.logsumexp(lp0, axis=(1, 2), keepdims=True))
+            inps.append(dataclasses.replace(inp, mask=mask))
+            truths.append(jnp.asarray(truth_in_filter_order(w, config, order), prm.sigma_r.dtype))
+            group_of[d] = len(groups)
+        stack = lambda *xs: jnp.stack(xs)  # noqa: E731
+        groups.append(Group(cfg, prepared[members[0]][3], jax.tree.map(stack, *inps), jnp.stack(lps),
+                            jnp.stack(truths), tuple(members), grid_span_m(cfg)))
+    return groups, group_of
+
+
+def run_metrics(cfg: pgp.FilterConfig, prm: pgp.FilterParams, inp: pgp.FilterInputs, logpost0, truth,
+                span_m: float) -> dict[str, Float[Array, ""]]:
+    """Run the filter once and reduce it to the sweep's metrics (one run; `run_batch` vmaps it)."""
+    _, out = pgp._filter(cfg, prm, inp, logpost0)
+    est = out.estimate
+    have = jnp.isfinite(est).all(-1)[:, 1:]
+    return {
+        "rmse_m": track_rmse(est, truth),
+        "final_rmse_m": final_rmse(est, truth),
+        "availability": jnp.mean(have.astype(est.dtype)),
+        "localised": jnp.sum(have[-1]).astype(est.dtype),
+        "nlpl": neg_log_predictive(out, prm.sigma_r, prm.p_out, span_m),
+    }
+
+
+def _batched(cfg, prm, inp, logpost0, truth, span_m):
+    return jax.vmap(run_metrics, in_axes=(None, 0, 0, 0, 0, None))(cfg, prm, inp, logpost0, truth, span_m)
+
+
+# One compilation per (group config, batch shape): parameter values and datasets are array data.
+run_batch = eqx.filter_jit(_batched)
+
+
+def _shard(tree, mesh):
+    """Put a host pytree with a leading batch axis on the devices of `mesh`, sharded along it."""
+    from jax.sharding import NamedSharding, PartitionSpec
+
+    sh = NamedSharding(mesh, PartitionSpec("runs"))
+    if jax.process_count() == 1:
+        return jax.device_put(tree, sh)
+    return jax.tree.map(lambda a: jax.make_array_from_callback(a.shape, sh, lambda idx: a[idx]), tree)
+
+
+def _gather(tree) -> dict:
+    if jax.process_count() == 1:
+        return jax.tree.map(np.asarray, tree)
+    from jax.experimental import multihost_utils
+
+    return jax.tree.map(np.asarray, multihost_utils.process_allgather(tree, tiled=True))
+
+
+def execute(
+    spec: SweepSpec,
+    pl: Plan,
+    groups: Sequence[Group],
+    group_of: np.ndarray,
+    done: np.ndarray,
+    devices: Sequence | None = None,
+) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
+    """Run every run not yet `done`, batch by batch.
+
+    Batches are fixed chunks of each group's runs (so an interrupted sweep rebuilds the same batches);
+    a chunk whose runs are all done is skipped, and only its runs not done are computed.
+
+    Args:
+        spec, pl, groups, group_of: from `parse_spec`, `plan`, `build_groups`.
+        done: (R,) bool, runs already finished.
+        devices: devices of the 1-D mesh (default `jax.devices()`, all processes).
+
+    Yields:
+        (run indices, metrics name -> values) per finished batch.
+    """
+    from jax.sharding import Mesh
+
+    devs = list(devices) if devices is not None else jax.devices()
+    mesh = Mesh(np.asarray(devs), ("runs",))
+    bsz = int(math.ceil(spec.batch_size / len(devs)) * len(devs))
+    run_group = group_of[pl.dataset_of]
+    for gi, g in enumerate(groups):
+        runs = np.flatnonzero(run_group == gi)
+        local = {d: k for k, d in enumerate(g.members)}
+        for start in range(0, runs.size, bsz):
+            chunk = runs[start:start + bsz]
+            todo = chunk[~done[chunk]]
+            if todo.size == 0:
+                continue
+            padded = np.concatenate([todo, np.repeat(todo[-1:], bsz - todo.size)])
+            ds_idx = np.asarray([local[int(pl.dataset_of[r])] for r in padded])
+            prm = g.base
+            for name, vals in pl.values.items():
+                prm = dataclasses.replace(prm, **{name: vals[padded]})
+            dtype = np.asarray(g.base.sigma_r).dtype
+            prm = jax.tree.map(lambda a: np.broadcast_to(np.asarray(a, dtype), (bsz,)), prm)
+            host = (prm, jax.tree.map(lambda a: np.asarray(a)[ds_idx], g.inp),
+                    np.asarray(g.logpost0)[ds_idx], np.asarray(g.truth)[ds_idx])
+            args = _shard(host, mesh)
+            out = _gather(run_batch(g.cfg, *args, g.span_m))
+            yield todo, {k: np.asarray(v, np.float64)[: todo.size] for k, v in out.items()}
+
+
+def simulate_or_raise(sc: Scenario, seed: int) -> MeshDataset:
+    """The dataset of a `simulate` scenario and seed (overrides passed to `sim.mesh.simulate`)."""
+    from jaxcal.sim.mesh import simulate
+
+    return simulate(sc.simulate, seed, **dict(sc.overrides))
+
