@@ -129,6 +129,7 @@ def main(argv=None) -> int:
         default="auto",
         help="also GP-calibrated anchors (auto: if available, not with --quick: takes minutes)",
     )
+    ap.add_argument("--descriptor-dim", type=int, default=256, help="F (cost per keyframe match)")
     ap.add_argument(
         "--campus-drift", type=float, default=0.0, help="odometry drift of the campus run"
     )
@@ -140,7 +141,7 @@ def main(argv=None) -> int:
     errors = [0.0, 2.0, 5.0] if quick else [0.0, 1.0, 2.0, 5.0, 10.0]
     n_single = 15 if quick else 30
     lat_repeats = 10 if quick else 20  # one-shot calls are short: many repeats beat load spikes
-    cfg = PlaceConfig()
+    cfg = PlaceConfig(descriptor_dim=args.descriptor_dim)
     params = gating.GateParams()  # delta 3 m, k_sigma 2, range_rel 0.01
 
     t0 = time.perf_counter()
