@@ -1,0 +1,109 @@
+"""NLS / LS baselines, clock-offset search and the CLI path of the trajectory methods."""
+
+import numpy as np
+import pytest
+
+from conftest import assert_one_line_error, run_cli
+from jaxcal.data import TrajectoryDataset
+from jaxcal.io import hdf5
+from jaxcal.trajectory import ls, nls
+from jaxcal.trajectory.poses import fit_poses, estimate_time_offset
+
+
+def lissajous(n_anchor=3, noise=0.0, planar=False, outliers=0, shift_s=0.0, seed=0, bias=0.0):
+    """Tag on a 3-D (or planar) Lissajous with yaw rotation and a lever arm; ranges round-robin."""
+    rng = np.random.default_rng(seed)
+    anchors = rng.uniform([-4, -4, 2.0], [4, 4, 3.0], (n_anchor, 3))
+
+    def body(t):
+        zamp = 0.0 if planar else 1.2
+        p = np.stack([5 * np.sin(0.31 * t), 5 * np.sin(0.23 * t + 1), zamp * np.sin(0.17 * t) + 1.0], 1)
+        return p, 0.1 * t
+
+    t = np.arange(0, 60.0, 0.05)
+    p, yaw = body(t)
+    q = np.stack([0 * t, 0 * t, np.sin(yaw / 2), np.cos(yaw / 2)], 1)
+    rt = np.arange(0.5, 59.5, 0.02)
+    pr, yr = body(rt)
+    c, s = np.cos(yr), np.sin(yr)
+    tag = pr + np.stack([c * 0.3 - s * 0.1, s * 0.3 + c * 0.1, 0.2 + 0 * rt], 1)
+    ai = np.arange(rt.size) % n_anchor
+    r = np.linalg.norm(tag - anchors[ai], axis=1) + bias + noise * rng.normal(size=rt.size)
+    if outliers:
+        r[rng.choice(rt.size, outliers, replace=False)] += rng.uniform(5, 25, outliers)
+    return TrajectoryDataset(
+        name="liss", anchor_ids=[f"a{i}" for i in range(n_anchor)], tag_ids=["t"], lever_arm=[[0.3, 0.1, 0.2]],
+        pose_time=t, pose_position=p, pose_orientation=q, range_time=rt - shift_s, range_anchor=ai,
+        range_tag=np.zeros(rt.size, int), range=r, anchor_truth=anchors,
+    )
+
+
+def _err(res, ds):
+    return np.linalg.norm(res.position - ds.anchor_truth, axis=1)
+
+
+def test_ls_exact_on_noise_free_data():
+    ds = lissajous()
+    res = ls.calibrate(ds)
+    assert _err(res, ds).max() < 1e-5
+    assert res.method == "ls" and res.covariance.shape == (3, 3, 3)
+
+
+def test_ls_planar_recovers_height_above_plane():
+    ds = lissajous(planar=True)  # anchors above the tag plane: the default side
+    res = ls.calibrate(ds)
+    assert _err(res, ds).max() < 1e-4
+
+
+def test_nls_noise_free_within_5cm_and_bias_recovered():
+    ds = lissajous(bias=0.3)
+    res = nls.calibrate(ds)
+    assert _err(res, ds).max() < 0.05
+    np.testing.assert_allclose(res.params["info_bias_m"], 0.3, atol=0.01)
+
+
+def test_nls_robust_to_gross_outliers():
+    ds = lissajous(noise=0.05, outliers=40)
+    e_nls = _err(nls.calibrate(ds), ds)
+    e_l2 = _err(nls.calibrate(ds, {"loss": "l2"}), ds)
+    assert e_nls.max() < 0.1, e_nls
+    assert e_l2.max() > 2 * e_nls.max()  # the robust loss is what helps
+
+
+def test_nls_covariance_reflects_noise():
+    lo = nls.calibrate(lissajous(noise=0.02, seed=1))
+    hi = nls.calibrate(lissajous(noise=0.2, seed=1))
+    sd_lo = np.sqrt(np.trace(lo.covariance, axis1=1, axis2=2))
+    sd_hi = np.sqrt(np.trace(hi.covariance, axis1=1, axis2=2))
+    assert np.all(sd_hi > 5 * sd_lo)
+
+
+def test_time_offset_recovered():
+    ds = lissajous(noise=0.02, shift_s=0.25)  # range clock runs 0.25 s behind the poses
+    off = estimate_time_offset(fit_poses(ds), ds, max_offset_s=1.0)
+    assert off == pytest.approx(0.25, abs=0.02)
+
+
+def test_unknown_loss_is_a_clear_error():
+    from jaxcal.errors import JaxcalError
+
+    with pytest.raises(JaxcalError, match="loss"):
+        nls.calibrate(lissajous(), {"loss": "tukey"})
+
+
+def test_cli_calibrate_gp_then_evaluate(tmp_path):
+    ds = lissajous(n_anchor=2)
+    f = tmp_path / "liss.h5"
+    hdf5.write(f, ds)
+    out = tmp_path / "R.h5"
+    env = {"XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}
+    proc = run_cli("calibrate", f, "--method", "gp", "-o", out, "--set", "n_train=60", "--set", "stages=1", env=env)
+    assert proc.returncode == 0, proc.stderr
+    res = hdf5.read(out)
+    assert res.method == "gp" and res.covariance.shape == (2, 3, 3)
+    assert np.linalg.norm(res.position - ds.anchor_truth, axis=1).max() < 1.0  # tiny training set
+    ev = run_cli("evaluate", out, "--truth", f, "--json")
+    assert ev.returncode == 0, ev.stderr
+    assert '"mean_error_m"' in ev.stdout
+    bad = run_cli("calibrate", f, "--method", "nls", "-o", tmp_path / "x.h5", "--set", "loss=tukey", env=env)
+    assert_one_line_error(bad, "loss")
