@@ -10,8 +10,8 @@ Runs whose datasets have the same number of nodes and epochs form a group and ru
 grid: the largest of their `prepare` grids (a dataset whose own grid is smaller gets a few more
 cells of uniform prior at the border; with a single dataset the grid is exactly `run_pgp`'s).
 
-Batches are padded to a multiple of the device count and their leading axis is sharded over a 1-D
-mesh of `jax.devices()` (`NamedSharding`); under `jax.distributed` the mesh spans the devices of all
+Batches hold `batch_size` runs per device (the last one padded with copies of a run) and their
+leading axis is sharded over a 1-D mesh of `jax.devices()` (`NamedSharding`); under `jax.distributed` the mesh spans the devices of all
 processes, every process builds the same batches and computes its own shards, and the metrics are
 gathered to every process (`process_allgather`), so that process 0 can write them.
 
@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-import math
 from collections.abc import Iterator, Mapping, Sequence
 
 import equinox as eqx
@@ -79,7 +78,8 @@ class SweepSpec:
     Attributes:
         method: "pgp" or "parametric". epochs: window (first K epochs) or None for all.
         params: fixed parameter overrides of `PGPParams`. grid: swept name -> values.
-        scenarios: the dataset sources. batch_size: runs per batch (rounded up to the device count).
+        scenarios: the dataset sources. batch_size: runs per device in one batch (a batch holds
+            batch_size x device count runs; the last one of a group is padded with copies).
     """
 
     method: str
@@ -291,7 +291,8 @@ def execute(
 
     devs = list(devices) if devices is not None else jax.devices()
     mesh = Mesh(np.asarray(devs), ("runs",))
-    bsz = int(math.ceil(spec.batch_size / len(devs)) * len(devs))
+    # per-device width fixed by the spec: every device runs the same program whatever their number
+    bsz = spec.batch_size * len(devs)
     run_group = group_of[pl.dataset_of]
     for gi, g in enumerate(groups):
         runs = np.flatnonzero(run_group == gi)

@@ -15,7 +15,7 @@ def add_arguments(p) -> None:
     p.add_argument("spec", help="sweep specification (TOML, see docs/cluster.md)")
     p.add_argument("-o", "--output", required=True, metavar="SWEEP.h5", help="results (created or resumed)")
     p.add_argument("--restart", action="store_true", help="discard an existing output instead of resuming")
-    p.add_argument("--batch-size", type=int, default=None, help="runs per batch (overrides the spec)")
+    p.add_argument("--batch-size", type=int, default=None, help="runs per device in one batch (overrides the spec)")
     p.add_argument("--coordinator", default=None, metavar="HOST:PORT",
                    help="jax.distributed coordinator address (multi-process sweep)")
     p.add_argument("--num-processes", type=int, default=None, help="number of processes (with --coordinator)")
@@ -170,7 +170,7 @@ def run(args) -> int:
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
 
-        done = np.asarray(multihost_utils.broadcast_one_to_all(done), bool)
+        done = np.array(multihost_utils.broadcast_one_to_all(done), dtype=bool)  # a writable copy
     attrs = {"format": FORMAT, "spec_id": ident, "spec_toml": text, "method": spec.method,
              "epochs": -1 if spec.epochs is None else spec.epochs,
              "fixed_params": repr(dict(spec.params)), "swept": ",".join(pl.values)}

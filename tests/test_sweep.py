@@ -1,0 +1,206 @@
+"""Sweeps: metrics equal single runs + evaluate, no recompilation, spec errors, kill/resume,
+4 virtual devices and 2 processes equal one device."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import equinox as eqx
+import numpy as np
+import pytest
+
+from conftest import ROOT, assert_one_line_error, run_cli
+from jaxcal import sweep as S
+from jaxcal.errors import JaxcalError
+from jaxcal.metrics import evaluate_mesh
+from jaxcal.mesh.pgp import run_pgp
+from jaxcal.sim.mesh import simulate
+
+FIXED = dict(cell_m=2.0, max_hyp=4, top_k=8, min_refs=2, likelihood="dense")
+SPEC = """
+method = "pgp"
+epochs = 12
+batch_size = 2
+[params]
+cell_m = 2.0
+max_hyp = 4
+top_k = 8
+min_refs = 2
+likelihood = "dense"
+[grid]
+sigma_r = [0.3, 1.0, 2.0]
+tau = [0.5, 0.9]
+[[scenarios]]
+simulate = "small"
+config = "conf1"
+seeds = [0, 1]
+"""
+N_RUNS = 12
+
+
+def test_metrics_equal_single_runs_and_evaluate():
+    doc = {"epochs": 12, "batch_size": 4, "params": FIXED,
+           "grid": {"sigma_r": [0.4, 1.5], "tau": [0.6, 0.95]},
+           "scenarios": [{"simulate": "small", "config": "conf1", "seeds": [3]}]}
+    spec = S.parse_spec(doc)
+    pl = S.plan(spec)
+    ds = simulate("small", 3)
+    groups, group_of = S.build_groups([(ds, "conf1")], spec)
+    got = {k: np.full(pl.n_runs, np.nan) for k in S.METRICS}
+    for idx, vals in S.execute(spec, pl, groups, group_of, np.zeros(pl.n_runs, bool)):
+        for k, v in vals.items():
+            got[k][idx] = v
+    from jaxcal.tune import window
+
+    w = window(ds, 12)
+    for r in range(pl.n_runs):
+        p = {**FIXED, "sigma_r": pl.values["sigma_r"][r], "tau": pl.values["tau"][r]}
+        res, _ = run_pgp(w, p, "conf1")
+        ev = evaluate_mesh(res, w)
+        np.testing.assert_allclose(got["rmse_m"][r], ev["rmse_m"], rtol=1e-9)
+        np.testing.assert_allclose(got["final_rmse_m"][r], ev["final_rmse_m"], rtol=1e-9)
+        avail = np.isfinite(res.track_position).all(-1)
+        a0 = ds.config("conf1")[0]
+        assert got["localised"][r] == avail[-1].sum() - avail[-1][a0]
+        assert np.isfinite(got["nlpl"][r])
+    assert len(set(np.round(got["nlpl"], 9))) == pl.n_runs  # every value really ran
+
+
+def test_no_recompilation_across_values(monkeypatch):
+    fn = eqx.filter_jit(eqx.debug.assert_max_traces(S._batched, max_traces=1))
+    monkeypatch.setattr(S, "run_batch", fn)
+    doc = {"epochs": 5, "batch_size": 2, "params": FIXED, "grid": {"sigma_r": [0.3, 0.6, 0.9, 1.2, 1.5, 2.0],
+                                                                   "sigma_v": [0.2, 0.5]},
+           "scenarios": [{"simulate": "small", "config": "conf1", "seeds": [0]}]}
+    spec = S.parse_spec(doc)
+    pl = S.plan(spec)
+    groups, group_of = S.build_groups([(simulate("small", 0), "conf1")], spec)
+    batches = list(S.execute(spec, pl, groups, group_of, np.zeros(pl.n_runs, bool)))
+    assert len(batches) == 6 and sum(b[0].size for b in batches) == 12
+    assert eqx.debug.get_num_traces(fn) == 1
+
+
+@pytest.mark.parametrize("doc, fragment", [
+    ({"grid": {"cell_m": [1.0, 2.0]}, "scenarios": [{"simulate": "small"}]}, "only"),
+    ({"grid": {"sigma_r": [-1.0]}, "scenarios": [{"simulate": "small"}]}, "sigma_r"),
+    ({"grid": {"sigma_r": [1.0]}, "scenarios": []}, "scenarios"),
+    ({"scenarios": [{"simulate": "small", "file": "x.h5"}]}, "exactly one"),
+    ({"colour": 1, "scenarios": [{"simulate": "small"}]}, "unknown"),
+    ({"params": {"sigma_r": 1.0}, "grid": {"sigma_r": [1.0]}, "scenarios": [{"simulate": "small"}]}, "both"),
+])
+def test_bad_spec(doc, fragment):
+    with pytest.raises(JaxcalError, match=fragment):
+        S.parse_spec(doc)
+
+
+def _env(tmp_path, **extra):
+    e = {"JAX_COMPILATION_CACHE_DIR": str(tmp_path.parent / "jaxcache"),
+         "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+    e.update(extra)
+    return e
+
+
+def _metrics(path):
+    from jaxcal.commands.sweep import read_store
+
+    _, runs, metrics, done = read_store(str(path))
+    return runs, metrics, done
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """One uninterrupted single-device sweep (CLI, float32)."""
+    d = tmp_path_factory.mktemp("sweep")
+    spec = d / "spec.toml"
+    spec.write_text(SPEC)
+    out = d / "ref.h5"
+    proc = run_cli("sweep", spec, "-o", out, "--json", env=_env(d))
+    assert proc.returncode == 0, proc.stderr
+    runs, metrics, done = _metrics(out)
+    assert done.all() and len(done) == N_RUNS
+    assert "ETA" in proc.stderr
+    return spec, runs, metrics
+
+
+def _same(a, b):
+    for k in S.METRICS:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_kill_and_resume_equals_uninterrupted(reference, tmp_path):
+    spec, runs_ref, ref = reference
+    out = tmp_path / "s.h5"
+    env = dict(os.environ, JAX_PLATFORMS="cpu", **_env(spec.parent))
+    proc = subprocess.Popen([sys.executable, "-m", "jaxcal.cli", "sweep", str(spec), "-o", str(out),
+                             "--throttle", "2"], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    n_done = 0
+    while time.time() < deadline:
+        if out.exists():
+            n_done = int(_metrics(out)[2].sum())  # every state on disk is a complete file
+            if n_done >= 2:
+                break
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    runs, part, done = _metrics(out)
+    assert 2 <= done.sum() < N_RUNS, done
+    n_done = int(done.sum())
+    np.testing.assert_array_equal(np.isnan(part["nlpl"]), ~done)
+    res = run_cli("sweep", spec, "-o", out, "--json", env=_env(spec.parent))
+    assert res.returncode == 0, res.stderr
+    import json
+
+    summary = json.loads(res.stdout)
+    assert summary["computed"] == N_RUNS - n_done and summary["resumed"] == n_done
+    runs, metrics, done = _metrics(out)
+    assert done.all()
+    _same(metrics, ref)
+    for k in runs_ref:
+        np.testing.assert_array_equal(runs[k], runs_ref[k])
+    # finished: a third call computes nothing; another spec on the same file is refused
+    again = run_cli("sweep", spec, "-o", out, "--json", env=_env(spec.parent))
+    assert json.loads(again.stdout)["computed"] == 0
+    other = tmp_path / "other.toml"
+    other.write_text(SPEC.replace("[0.5, 0.9]", "[0.5, 0.8]"))
+    assert_one_line_error(run_cli("sweep", other, "-o", out), "different sweep spec")
+
+
+def test_four_virtual_devices_equal_one(reference, tmp_path):
+    spec, _, ref = reference
+    out = tmp_path / "d4.h5"
+    proc = run_cli("sweep", spec, "-o", out, "--json",
+                   env=_env(spec.parent, XLA_FLAGS="--xla_force_host_platform_device_count=4"))
+    assert proc.returncode == 0, proc.stderr
+    assert '"devices": 4' in proc.stdout
+    _same(_metrics(out)[1], ref)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_two_processes_equal_one(reference, tmp_path):
+    spec, _, ref = reference
+    out = tmp_path / "p2.h5"
+    addr = f"127.0.0.1:{_free_port()}"
+    env = dict(os.environ, JAX_PLATFORMS="cpu", **_env(spec.parent))
+    env.pop("JAXCAL_DEBUG", None)
+    procs = [subprocess.Popen([sys.executable, "-m", "jaxcal.cli", "sweep", str(spec), "-o", str(out),
+                               "--coordinator", addr, "--num-processes", "2", "--process-id", str(i), "--json"],
+                              env=env, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for i in range(2)]
+    outs = [p.communicate(timeout=300) for p in procs]
+    for p, (so, se) in zip(procs, outs, strict=True):
+        assert p.returncode == 0, se
+    # only process 0 writes and reports (gloo prints its own connection line on stdout)
+    assert '"processes": 2' in outs[0][0] and "{" not in outs[1][0]
+    _same(_metrics(out)[1], ref)
