@@ -41,17 +41,31 @@ def run(ds, method, params, label):
     ok = np.isfinite(err)
     hz = np.abs(res.position[:, 2] - truth[:, 2])
     h = np.linalg.norm(res.position[:, :2] - truth[:, :2], axis=1)
-    print(json.dumps({
-        "dataset": label, "method": method, "params": {k: v for k, v in params.items()},
-        "mean_error_m": float(err[ok].mean()) if ok.any() else None,
-        "median_error_m": float(np.median(err[ok])) if ok.any() else None,
-        "mean_horizontal_m": float(h[ok].mean()) if ok.any() else None,
-        "mean_vertical_m": float(hz[ok].mean()) if ok.any() else None,
-        "estimated": int(ok.sum()), "anchors": int(err.size),
-        "mean_reported_sd_m": float(np.sqrt(np.trace(res.covariance[ok], axis1=1, axis2=2) / 3).mean()) if ok.any() else None,
-        "seconds": round(t1 - t0, 2), "warm_seconds": round(t2 - t1, 2),
-        "time_offset_s": res.params.get("info_time_offset_s"), "device": jax.devices()[0].platform,
-    }), flush=True)
+    print(
+        json.dumps(
+            {
+                "dataset": label,
+                "method": method,
+                "params": {k: v for k, v in params.items()},
+                "mean_error_m": float(err[ok].mean()) if ok.any() else None,
+                "median_error_m": float(np.median(err[ok])) if ok.any() else None,
+                "mean_horizontal_m": float(h[ok].mean()) if ok.any() else None,
+                "mean_vertical_m": float(hz[ok].mean()) if ok.any() else None,
+                "estimated": int(ok.sum()),
+                "anchors": int(err.size),
+                "mean_reported_sd_m": float(
+                    np.sqrt(np.trace(res.covariance[ok], axis1=1, axis2=2) / 3).mean()
+                )
+                if ok.any()
+                else None,
+                "seconds": round(t1 - t0, 2),
+                "warm_seconds": round(t2 - t1, 2),
+                "time_offset_s": res.params.get("info_time_offset_s"),
+                "device": jax.devices()[0].platform,
+            }
+        ),
+        flush=True,
+    )
 
 
 def main():
@@ -59,7 +73,9 @@ def main():
     ap.add_argument("files", nargs="*")
     ap.add_argument("--campus", action="store_true")
     ap.add_argument("--subsample", action="store_true")
-    ap.add_argument("--offset", action="store_true", help="also run nls with clock-offset estimation")
+    ap.add_argument(
+        "--offset", action="store_true", help="also run nls with clock-offset estimation"
+    )
     a = ap.parse_args()
     for f in a.files:
         ds = hdf5.read(f)

@@ -14,7 +14,9 @@ def test_cubic_blending_matrix_is_the_textbook_one():
     np.testing.assert_allclose(m, ref, atol=1e-12)
     for k in (2, 3, 4, 5):  # partition of unity: the weights sum to 1 for every u
         np.testing.assert_allclose(bspline.blending_matrix(k).sum(axis=0), np.eye(k)[0], atol=1e-12)
-        np.testing.assert_allclose(bspline.cumulative_blending_matrix(k)[0], np.eye(k)[0], atol=1e-12)
+        np.testing.assert_allclose(
+            bspline.cumulative_blending_matrix(k)[0], np.eye(k)[0], atol=1e-12
+        )
 
 
 @pytest.mark.parametrize("order", [2, 3, 4, 5])
@@ -43,7 +45,9 @@ def test_gaps_split_the_stream_and_evaluate_to_nan():
 def test_quaternion_rotation_and_slerp():
     yaw = np.pi / 2
     q = jnp.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
-    np.testing.assert_allclose(poses.quat_rotate(q, jnp.array([1.0, 0.0, 0.0])), [0.0, 1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(
+        poses.quat_rotate(q, jnp.array([1.0, 0.0, 0.0])), [0.0, 1.0, 0.0], atol=1e-12
+    )
     qs = jnp.array([[0.0, 0.0, 0.0, 1.0], q])
     mid = poses.slerp_orientation(jnp.array([0.0, 1.0]), qs, jnp.array([0.5]))[0]
     np.testing.assert_allclose(mid, [0.0, 0.0, np.sin(yaw / 4), np.cos(yaw / 4)], atol=1e-12)
@@ -56,9 +60,17 @@ def test_tag_positions_apply_lever_arm_and_hold_static_dwells():
     yaw = np.pi / 2
     quat = np.tile([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)], (4, 1))
     ds = TrajectoryDataset(
-        name="d", anchor_ids=["a"], tag_ids=["t"], lever_arm=[[1.0, 0.0, 0.5]], pose_time=t,
-        pose_position=pos, pose_orientation=quat, range_time=[2.0, 25.0, 31.0], range_anchor=[0, 0, 0],
-        range_tag=[0, 0, 0], range=[1.0, 1.0, 1.0],
+        name="d",
+        anchor_ids=["a"],
+        tag_ids=["t"],
+        lever_arm=[[1.0, 0.0, 0.5]],
+        pose_time=t,
+        pose_position=pos,
+        pose_orientation=quat,
+        range_time=[2.0, 25.0, 31.0],
+        range_anchor=[0, 0, 0],
+        range_tag=[0, 0, 0],
+        range=[1.0, 1.0, 1.0],
     )
     groups, info = poses.prepare(ds, max_gap_s=100.0)
     got = np.asarray(groups.position[0])[np.asarray(groups.mask[0])]

@@ -1,6 +1,5 @@
 """GP anchor calibration: kernel and likelihood against dense SciPy references, gradients, accuracy."""
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -41,7 +40,11 @@ def test_nlml_equals_dense_scipy(nu):
     y = rng.normal(size=n + pad)
     mask = np.arange(n + pad) < n
     h = gp.Hyper(jnp.log(1.3), jnp.log(0.8), jnp.log(0.05))
-    got = float(gp.neg_log_marginal_likelihood(h, jnp.asarray(x), jnp.asarray(y), jnp.asarray(mask), nu, 1e-6))
+    got = float(
+        gp.neg_log_marginal_likelihood(
+            h, jnp.asarray(x), jnp.asarray(y), jnp.asarray(mask), nu, 1e-6
+        )
+    )
     xv, yv = x[:n], y[:n]
     d = np.linalg.norm(xv[:, None] - xv[None], axis=-1)
     k = _matern_ref(d, 1.3, 0.8, nu) + (0.05 + 1e-6 * 0.8) * np.eye(n)
@@ -56,7 +59,9 @@ def test_nlml_gradients(nu):
     y = jnp.asarray(rng.normal(size=12))
     mask = jnp.asarray(np.arange(12) < 10)
     h = gp.Hyper(jnp.log(1.1), jnp.log(0.9), jnp.log(0.1))
-    check_grads(lambda h: gp.neg_log_marginal_likelihood(h, x, y, mask, nu), (h,), order=1, modes=("rev",))
+    check_grads(
+        lambda h: gp.neg_log_marginal_likelihood(h, x, y, mask, nu), (h,), order=1, modes=("rev",)
+    )
 
 
 def test_target_transform_roundtrip():
@@ -81,7 +86,9 @@ def drone(noise=0.0, seed=0):
     def path(t):
         k = (t >= 30).astype(int)
         s = t - 30 * k
-        off = np.stack([1.5 * np.sin(0.9 * s), 1.5 * np.sin(0.7 * s + 0.5), 1.2 * np.sin(1.1 * s + 1.0)], 1)
+        off = np.stack(
+            [1.5 * np.sin(0.9 * s), 1.5 * np.sin(0.7 * s + 0.5), 1.2 * np.sin(1.1 * s + 1.0)], 1
+        )
         return anchors[k] + off + np.array([0.2, -0.1, 0.1]), k
 
     t = np.arange(0, 60.0, 0.05)
@@ -89,9 +96,17 @@ def drone(noise=0.0, seed=0):
     p, k = path(rt)
     r = np.linalg.norm(p - anchors[k], axis=1) + noise * rng.normal(size=rt.size)
     return TrajectoryDataset(
-        name="drone", anchor_ids=["a", "b"], tag_ids=["t"], lever_arm=np.zeros((1, 3)), pose_time=t,
-        pose_position=path(t)[0], range_time=rt, range_anchor=k, range_tag=np.zeros(rt.size, int),
-        range=r, anchor_truth=anchors,
+        name="drone",
+        anchor_ids=["a", "b"],
+        tag_ids=["t"],
+        lever_arm=np.zeros((1, 3)),
+        pose_time=t,
+        pose_position=path(t)[0],
+        range_time=rt,
+        range_anchor=k,
+        range_tag=np.zeros(rt.size, int),
+        range=r,
+        anchor_truth=anchors,
     )
 
 
@@ -107,5 +122,3 @@ def test_gp_noise_free_within_5cm():
 def test_gp_bad_target_is_a_clear_error():
     with pytest.raises(JaxcalError, match="target"):
         gp.calibrate(drone(), {"target": "log"})
-
-

@@ -7,7 +7,7 @@ from conftest import assert_one_line_error, run_cli
 from jaxcal.data import TrajectoryDataset
 from jaxcal.io import hdf5
 from jaxcal.trajectory import ls, nls
-from jaxcal.trajectory.poses import fit_poses, estimate_time_offset
+from jaxcal.trajectory.poses import estimate_time_offset, fit_poses
 
 
 def lissajous(n_anchor=3, noise=0.0, planar=False, outliers=0, shift_s=0.0, seed=0, bias=0.0):
@@ -17,7 +17,9 @@ def lissajous(n_anchor=3, noise=0.0, planar=False, outliers=0, shift_s=0.0, seed
 
     def body(t):
         zamp = 0.0 if planar else 1.2
-        p = np.stack([5 * np.sin(0.31 * t), 5 * np.sin(0.23 * t + 1), zamp * np.sin(0.17 * t) + 1.0], 1)
+        p = np.stack(
+            [5 * np.sin(0.31 * t), 5 * np.sin(0.23 * t + 1), zamp * np.sin(0.17 * t) + 1.0], 1
+        )
         return p, 0.1 * t
 
     t = np.arange(0, 60.0, 0.05)
@@ -32,9 +34,18 @@ def lissajous(n_anchor=3, noise=0.0, planar=False, outliers=0, shift_s=0.0, seed
     if outliers:
         r[rng.choice(rt.size, outliers, replace=False)] += rng.uniform(5, 25, outliers)
     return TrajectoryDataset(
-        name="liss", anchor_ids=[f"a{i}" for i in range(n_anchor)], tag_ids=["t"], lever_arm=[[0.3, 0.1, 0.2]],
-        pose_time=t, pose_position=p, pose_orientation=q, range_time=rt - shift_s, range_anchor=ai,
-        range_tag=np.zeros(rt.size, int), range=r, anchor_truth=anchors,
+        name="liss",
+        anchor_ids=[f"a{i}" for i in range(n_anchor)],
+        tag_ids=["t"],
+        lever_arm=[[0.3, 0.1, 0.2]],
+        pose_time=t,
+        pose_position=p,
+        pose_orientation=q,
+        range_time=rt - shift_s,
+        range_anchor=ai,
+        range_tag=np.zeros(rt.size, int),
+        range=r,
+        anchor_truth=anchors,
     )
 
 
@@ -97,7 +108,19 @@ def test_cli_calibrate_gp_then_evaluate(tmp_path):
     hdf5.write(f, ds)
     out = tmp_path / "R.h5"
     env = {"XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}
-    proc = run_cli("calibrate", f, "--method", "gp", "-o", out, "--set", "n_train=60", "--set", "stages=1", env=env)
+    proc = run_cli(
+        "calibrate",
+        f,
+        "--method",
+        "gp",
+        "-o",
+        out,
+        "--set",
+        "n_train=60",
+        "--set",
+        "stages=1",
+        env=env,
+    )
     assert proc.returncode == 0, proc.stderr
     res = hdf5.read(out)
     assert res.method == "gp" and res.covariance.shape == (2, 3, 3)
@@ -105,5 +128,7 @@ def test_cli_calibrate_gp_then_evaluate(tmp_path):
     ev = run_cli("evaluate", out, "--truth", f, "--json")
     assert ev.returncode == 0, ev.stderr
     assert '"mean_error_m"' in ev.stdout
-    bad = run_cli("calibrate", f, "--method", "nls", "-o", tmp_path / "x.h5", "--set", "loss=tukey", env=env)
+    bad = run_cli(
+        "calibrate", f, "--method", "nls", "-o", tmp_path / "x.h5", "--set", "loss=tukey", env=env
+    )
     assert_one_line_error(bad, "loss")

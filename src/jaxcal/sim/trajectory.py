@@ -47,8 +47,8 @@ def campus_layout(scale: float = 1.0):
     inset = 15.0 * scale
     blocks = [
         (x0 + inset, y0 + inset, x1 - inset, y1 - inset)
-        for x0, x1 in zip(rx[:-1], rx[1:])
-        for y0, y1 in zip(ry[:-1], ry[1:])
+        for x0, x1 in zip(rx[:-1], rx[1:], strict=True)
+        for y0, y1 in zip(ry[:-1], ry[1:], strict=True)
     ]
     # Boustrophedon over the east-west roads, then over the north-south roads.
     wp = []
@@ -96,8 +96,13 @@ def _crosses(p: np.ndarray, a: np.ndarray, boxes: np.ndarray) -> np.ndarray:
 
 
 def simulate(
-    scenario: str = "campus", seed: int = 0, drift: float = 0.0, channel: ChannelModel | None = None,
-    max_range_m: float = 120.0, pose_rate_hz: float = 10.0, range_rate_hz: float = 20.0,
+    scenario: str = "campus",
+    seed: int = 0,
+    drift: float = 0.0,
+    channel: ChannelModel | None = None,
+    max_range_m: float = 120.0,
+    pose_rate_hz: float = 10.0,
+    range_rate_hz: float = 20.0,
     speed_mps: float = 8.0,
 ) -> TrajectoryDataset:
     """Simulate a trajectory scenario (host-side NumPy; same seed, same dataset).
@@ -115,7 +120,9 @@ def simulate(
         TrajectoryDataset with anchor truth, per-range LOS labels and one tag.
     """
     if scenario not in SCENARIOS:
-        raise ValueError(f"unknown trajectory scenario {scenario!r} (known: {', '.join(SCENARIOS)})")
+        raise ValueError(
+            f"unknown trajectory scenario {scenario!r} (known: {', '.join(SCENARIOS)})"
+        )
     if drift < 0:
         raise ValueError(f"drift must be >= 0, got {drift}")
     scale, n_anchors = (1.0, 10) if scenario == "campus" else (0.1, 3)
@@ -128,8 +135,9 @@ def simulate(
     z = _terrain(xy, scale)
     pos_true = np.column_stack([xy, z])
     heading = np.unwrap(np.arctan2(*np.gradient(xy, axis=0)[:, ::-1].T))
-    quat = np.column_stack([np.zeros_like(heading), np.zeros_like(heading),
-                            np.sin(heading / 2), np.cos(heading / 2)])
+    quat = np.column_stack(
+        [np.zeros_like(heading), np.zeros_like(heading), np.sin(heading / 2), np.cos(heading / 2)]
+    )
     lever = np.array([[0.5, 0.0, 1.8]]) * (1.0 if scale == 1.0 else 0.5)
 
     # Anchors: beside roads at distinct places along the route, offset 4-8 m sideways, 3-6 m high.
@@ -137,7 +145,9 @@ def simulate(
     side = gen.choice([-1.0, 1.0], n_anchors) * gen.uniform(4.0, 8.0, n_anchors) * max(scale, 0.25)
     normal = np.column_stack([-np.sin(heading[idx]), np.cos(heading[idx])])
     a_xy = xy[idx] + side[:, None] * normal
-    anchors = np.column_stack([a_xy, _terrain(a_xy, scale) + gen.uniform(3.0, 6.0, n_anchors) * max(scale, 0.5)])
+    anchors = np.column_stack(
+        [a_xy, _terrain(a_xy, scale) + gen.uniform(3.0, 6.0, n_anchors) * max(scale, 0.5)]
+    )
 
     # Ranging: every anchor at range_rate_hz, tag position from the true pose.
     rt = np.arange(0.0, t[-1], 1.0 / range_rate_hz) + 0.5 / range_rate_hz * gen.random()
@@ -146,7 +156,9 @@ def simulate(
     h_rt = np.interp(rt, t, heading)
     c, s = np.cos(h_rt), np.sin(h_rt)
     lv = lever[0]
-    tag = p_rt + np.column_stack([c * lv[0] - s * lv[1], s * lv[0] + c * lv[1], np.full_like(c, lv[2])])
+    tag = p_rt + np.column_stack(
+        [c * lv[0] - s * lv[1], s * lv[0] + c * lv[1], np.full_like(c, lv[2])]
+    )
     r_idx = np.repeat(np.arange(rt.size), n_anchors)
     a_idx = np.tile(np.arange(n_anchors), rt.size)
     dist = np.linalg.norm(tag[r_idx] - anchors[a_idx], axis=1)
@@ -166,10 +178,18 @@ def simulate(
     order = np.argsort(r_time, kind="stable")
     return TrajectoryDataset(
         name=f"sim-{scenario}" + (f"-drift{drift:g}" if drift > 0 else ""),
-        anchor_ids=[f"A{i + 1:02d}" for i in range(n_anchors)], tag_ids=["T1"], lever_arm=lever,
-        pose_time=t, pose_position=pos_rep, pose_orientation=quat,
-        range_time=r_time[order], range_anchor=a_idx[order], range_tag=np.zeros(order.size, np.int32),
-        range=rng_m[order], range_los=los[order].astype(np.int8), anchor_truth=anchors,
+        anchor_ids=[f"A{i + 1:02d}" for i in range(n_anchors)],
+        tag_ids=["T1"],
+        lever_arm=lever,
+        pose_time=t,
+        pose_position=pos_rep,
+        pose_orientation=quat,
+        range_time=r_time[order],
+        range_anchor=a_idx[order],
+        range_tag=np.zeros(order.size, np.int32),
+        range=rng_m[order],
+        range_los=los[order].astype(np.int8),
+        anchor_truth=anchors,
         description=f"simulated {scenario}: {SCENARIOS[scenario]}; seed {seed}, drift {drift} m/sqrt(s)",
         source="jaxcal.sim.trajectory",
     )

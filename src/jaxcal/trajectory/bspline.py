@@ -45,7 +45,10 @@ def blending_matrix(order: int) -> np.ndarray:
     m = np.zeros((k, k))
     for j in range(k):  # control point
         for n in range(k):  # power of u
-            s = sum((-1) ** (l - j) * math.comb(k, l - j) * (k - 1 - l) ** (k - 1 - n) for l in range(j, k))
+            s = sum(
+                (-1) ** (q - j) * math.comb(k, q - j) * (k - 1 - q) ** (k - 1 - n)
+                for q in range(j, k)
+            )
             m[j, n] = math.comb(k - 1, n) * s / math.factorial(k - 1)
     return m
 
@@ -82,29 +85,29 @@ def _banded_cholesky_solve(ab: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     Plain O(n b^2) loops: run once per dataset on the host (n = number of control points).
     """
     b, n = ab.shape[0] - 1, ab.shape[1]
-    l = np.zeros_like(ab)  # l[k, i] = L[i + k, i]
+    fac = np.zeros_like(ab)  # fac[k, i] = L[i + k, i]
     for i in range(n):
         s = ab[0, i]
         for m in range(max(0, i - b), i):
-            s -= l[i - m, m] ** 2
+            s -= fac[i - m, m] ** 2
         if s <= 0:
             raise np.linalg.LinAlgError("banded Cholesky: matrix not positive definite")
-        l[0, i] = math.sqrt(s)
+        fac[0, i] = math.sqrt(s)
         for k in range(1, min(b, n - 1 - i) + 1):
             r = i + k
             s = ab[k, i]
             for m in range(max(0, r - b), i):
-                s -= l[r - m, m] * l[i - m, m]
-            l[k, i] = s / l[0, i]
+                s -= fac[r - m, m] * fac[i - m, m]
+            fac[k, i] = s / fac[0, i]
     y = np.array(rhs, dtype=float)
     for i in range(n):  # forward: L Y = RHS
         for m in range(max(0, i - b), i):
-            y[i] -= l[i - m, m] * y[m]
-        y[i] /= l[0, i]
+            y[i] -= fac[i - m, m] * y[m]
+        y[i] /= fac[0, i]
     for i in range(n - 1, -1, -1):  # backward: L^T X = Y
         for r in range(i + 1, min(n, i + b + 1)):
-            y[i] -= l[r - i, i] * y[r]
-        y[i] /= l[0, i]
+            y[i] -= fac[r - i, i] * y[r]
+        y[i] /= fac[0, i]
     return y
 
 
@@ -142,8 +145,12 @@ def _segment(t, t0, dt, n_seg):
 
 
 def fit_pieces(
-    time_s: np.ndarray, values: np.ndarray, order: int = 4, knot_dt_s: float = 0.0,
-    max_gap_s: float = 0.0, penalty: float = 1e-6,
+    time_s: np.ndarray,
+    values: np.ndarray,
+    order: int = 4,
+    knot_dt_s: float = 0.0,
+    max_gap_s: float = 0.0,
+    penalty: float = 1e-6,
 ) -> SplinePieces:
     """Fit cumulative uniform B-spline pieces to a sampled stream (host side, once per dataset).
 
@@ -170,7 +177,7 @@ def fit_pieces(
     cuts = np.concatenate([[0], np.nonzero(dts > gap)[0] + 1, [t.size]])
     ctrl, off, t0, t1, dtl, nseg = [], [], [], [], [], []
     n = 0
-    for a, b in zip(cuts[:-1], cuts[1:]):
+    for a, b in zip(cuts[:-1], cuts[1:], strict=True):
         tp, xp = t[a:b], x[a:b]
         if tp.size == 1:  # a lone sample: a constant piece of zero length
             c, ns = np.repeat(xp, order, axis=0), 1
@@ -184,9 +191,13 @@ def fit_pieces(
         dtl.append(dt)
         nseg.append(ns)
     return SplinePieces(
-        control=jnp.asarray(np.concatenate(ctrl)), offset=jnp.asarray(np.array(off)),
-        t0=jnp.asarray(np.array(t0)), t1=jnp.asarray(np.array(t1)), dt=jnp.asarray(np.array(dtl)),
-        n_seg=jnp.asarray(np.array(nseg)), order=order,
+        control=jnp.asarray(np.concatenate(ctrl)),
+        offset=jnp.asarray(np.array(off)),
+        t0=jnp.asarray(np.array(t0)),
+        t1=jnp.asarray(np.array(t1)),
+        dt=jnp.asarray(np.array(dtl)),
+        n_seg=jnp.asarray(np.array(nseg)),
+        order=order,
     )
 
 

@@ -152,7 +152,9 @@ def _matern_general(z2, nu: float):
     return jnp.where(small, f_small, f_large)
 
 
-def matern(d2: Float[Array, "..."], length: Float[Array, ""], variance: Float[Array, ""], nu: float):
+def matern(
+    d2: Float[Array, ...], length: Float[Array, ""], variance: Float[Array, ""], nu: float
+):
     """Matern covariance from squared distances.
 
     Args:
@@ -188,9 +190,9 @@ class Hyper(eqx.Module):
         log_noise: log white-noise variance.
     """
 
-    log_length: Float[Array, "..."]
-    log_variance: Float[Array, "..."]
-    log_noise: Float[Array, "..."]
+    log_length: Float[Array, ...]
+    log_variance: Float[Array, ...]
+    log_noise: Float[Array, ...]
 
 
 def _gram(h: Hyper, x, mask, nu, jitter):
@@ -198,13 +200,19 @@ def _gram(h: Hyper, x, mask, nu, jitter):
     var = jnp.exp(h.log_variance)
     k = matern(_sqdist(x, x), jnp.exp(h.log_length), var, nu)
     k = k * m[:, None] * m[None, :]
-    diag = (jnp.exp(h.log_noise) + jitter * var) * m + (1.0 - m)  # padding: unit diagonal, no coupling
+    diag = (jnp.exp(h.log_noise) + jitter * var) * m + (
+        1.0 - m
+    )  # padding: unit diagonal, no coupling
     return k + jnp.diag(diag)
 
 
 def neg_log_marginal_likelihood(
-    h: Hyper, x: Float[Array, "n 3"], y: Float[Array, " n"], mask: Bool[Array, " n"],
-    nu: float = 1.5, jitter: float = 1e-6,
+    h: Hyper,
+    x: Float[Array, "n 3"],
+    y: Float[Array, " n"],
+    mask: Bool[Array, " n"],
+    nu: float = 1.5,
+    jitter: float = 1e-6,
 ) -> Float[Array, ""]:
     """-log p(y | x, h) of a zero-mean GP with Matern + white noise; padded entries (mask False) ignored.
 
@@ -229,7 +237,9 @@ def fit_hyper(x, y, mask, init: Hyper, nu: float = 1.5, jitter: float = 1e-6, ma
 
     def loss(h, _):
         # The objective is scaled by 1/n so that the BFGS tolerances mean the same for any n.
-        return neg_log_marginal_likelihood(h, x, y, mask, nu, jitter) / jnp.maximum(jnp.sum(mask), 1)
+        return neg_log_marginal_likelihood(h, x, y, mask, nu, jitter) / jnp.maximum(
+            jnp.sum(mask), 1
+        )
 
     solver = optx.BFGS(rtol=1e-6, atol=1e-6)
     sol = optx.minimise(loss, solver, init, max_steps=max_steps, throw=False)
@@ -256,7 +266,12 @@ def _posterior(h, x, y, mask, mean, nu, jitter):
 
 def predict(post: _Posterior, xs: Float[Array, "m 3"], with_var: bool = False):
     """Posterior mean (and variance) of the GP target at `xs` (m, 3) [m]."""
-    ks = matern(_sqdist(xs, post.x), jnp.exp(post.hyper.log_length), jnp.exp(post.hyper.log_variance), post.nu)
+    ks = matern(
+        _sqdist(xs, post.x),
+        jnp.exp(post.hyper.log_length),
+        jnp.exp(post.hyper.log_variance),
+        post.nu,
+    )
     ks = ks * post.mask[None, :]
     mu = post.mean + ks @ post.alpha
     if not with_var:
@@ -287,8 +302,17 @@ def from_target(y, target: str):
 # ---------------------------------------------------------------------------------------- search
 
 
-def search_anchor(post: _Posterior, centre, half, target: str, grid: int, top_k: int, shrink: float,
-                  n_rounds: int, grid_z: int):
+def search_anchor(
+    post: _Posterior,
+    centre,
+    half,
+    target: str,
+    grid: int,
+    top_k: int,
+    shrink: float,
+    n_rounds: int,
+    grid_z: int,
+):
     """Iterative cuboid search for the extremum of the GP mean (one anchor).
 
     Args:
@@ -362,7 +386,9 @@ def _calibrate_all(x, r, mask, centre, half, planar, p: GPParams, n_rounds: int,
         init = Hyper(jnp.log(jnp.maximum(0.3 * ext, 1e-2)), jnp.log(var_y), jnp.log(0.01 * var_y))
         h = fit_hyper(xc, yc, m, init, p.nu, p.jitter, p.max_steps)
         post = _posterior(h, xc, yc, m, mean, p.nu, p.jitter)
-        est, cov = search_anchor(post, c0 - origin, h0, p.target, p.grid, p.top_k, p.shrink, n_rounds, grid_z)
+        est, cov = search_anchor(
+            post, c0 - origin, h0, p.target, p.grid, p.top_k, p.shrink, n_rounds, grid_z
+        )
         mu, var = predict(post, est[None], with_var=True)
         d_hat = from_target(mu[0], p.target)
         if p.target == "range":
@@ -396,21 +422,40 @@ def calibrate(dataset, params=None, config=None) -> Result:
         raise JaxcalError(f"parameter target: expected range or inv-log, got {p.target!r}")
     matern(jnp.zeros(1), 1.0, 1.0, p.nu)  # validates nu
     if p.grid < 2 or p.top_k < 1 or p.top_k > p.grid**2 or not 0.0 < p.shrink < 1.0 or p.tol_m <= 0:
-        raise JaxcalError("parameters grid >= 2, 1 <= top_k <= grid^2, 0 < shrink < 1, tol_m > 0 required")
-    groups, info = prepare(dataset, p.order, p.knot_dt_s, p.max_gap_s, p.time_offset_s,
-                           p.estimate_offset, p.max_offset_s)
+        raise JaxcalError(
+            "parameters grid >= 2, 1 <= top_k <= grid^2, 0 < shrink < 1, tol_m > 0 required"
+        )
+    groups, info = prepare(
+        dataset,
+        p.order,
+        p.knot_dt_s,
+        p.max_gap_s,
+        p.time_offset_s,
+        p.estimate_offset,
+        p.max_offset_s,
+    )
     pos = np.asarray(groups.position)
     rng_m = np.asarray(groups.range)
     mask = np.asarray(groups.mask)
     a_n = pos.shape[0]
     n = max(1, min(p.n_train, int(mask.sum(axis=1).max())))
-    planar = np.array([
-        bool(mask[a].any()) and bool(is_planar(pos[a, mask[a], 2].std(), np.linalg.norm(pos[a, mask[a], :2].std(axis=0)),
-                                               p.planar_tol_m, p.planar_ratio))
-        for a in range(a_n)
-    ])
+    planar = np.array(
+        [
+            bool(mask[a].any())
+            and bool(
+                is_planar(
+                    pos[a, mask[a], 2].std(),
+                    np.linalg.norm(pos[a, mask[a], :2].std(axis=0)),
+                    p.planar_tol_m,
+                    p.planar_ratio,
+                )
+            )
+            for a in range(a_n)
+        ]
+    )
     grid_z = 1 if planar.all() else p.grid
     est = cov = hyp = None
+    half_prev = np.full((a_n, 3), np.inf)
     for stage in range(p.stages):
         x = np.zeros((a_n, n, 3))
         r = np.zeros((a_n, n))
@@ -437,12 +482,27 @@ def calibrate(dataset, params=None, config=None) -> Result:
                 half[a, 2] = 0.0
         half_prev = half
         if stage == 0:  # the same (static) number of rounds in every stage: one compilation
-            n_rounds = max(1, int(math.ceil(math.log(half.max() / p.tol_m) / math.log(1.0 / p.shrink))))
-        est, cov, hyp = _calibrate_all(jnp.asarray(x), jnp.asarray(r), jnp.asarray(m), jnp.asarray(centre),
-                                       jnp.asarray(half), jnp.asarray(planar), p, n_rounds, grid_z)
-    info = dict(info, n_rounds=n_rounds, planar=planar.tolist(),
-                length_m=np.exp(np.asarray(hyp.log_length)).tolist(),
-                signal_var=np.exp(np.asarray(hyp.log_variance)).tolist(),
-                noise_var=np.exp(np.asarray(hyp.log_noise)).tolist())
+            n_rounds = max(
+                1, int(math.ceil(math.log(half.max() / p.tol_m) / math.log(1.0 / p.shrink)))
+            )
+        est, cov, hyp = _calibrate_all(
+            jnp.asarray(x),
+            jnp.asarray(r),
+            jnp.asarray(m),
+            jnp.asarray(centre),
+            jnp.asarray(half),
+            jnp.asarray(planar),
+            p,
+            n_rounds,
+            grid_z,
+        )
+    info = dict(
+        info,
+        n_rounds=n_rounds,
+        planar=planar.tolist(),
+        length_m=np.exp(np.asarray(hyp.log_length)).tolist(),
+        signal_var=np.exp(np.asarray(hyp.log_variance)).tolist(),
+        noise_var=np.exp(np.asarray(hyp.log_noise)).tolist(),
+    )
     kept = AnchorRanges(groups.position, groups.range, groups.mask)
     return finish(dataset, "gp", p, kept, est, cov, info)

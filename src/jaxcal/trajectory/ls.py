@@ -74,8 +74,12 @@ def _solve(a_mat, b_vec, mask):
 
 
 def multilaterate(
-    pos: Float[Array, "n 3"], rng: Float[Array, " n"], mask: Bool[Array, " n"],
-    planar_tol_m: float = 0.3, side: float = 1.0, planar_ratio: float = 0.05,
+    pos: Float[Array, "n 3"],
+    rng: Float[Array, " n"],
+    mask: Bool[Array, " n"],
+    planar_tol_m: float = 0.3,
+    side: float = 1.0,
+    planar_ratio: float = 0.05,
 ) -> tuple[Float[Array, " 3"], Float[Array, "3 3"]]:
     """Linear LS position [m] and covariance [m^2] of one anchor from (masked) tag positions and ranges."""
     w = mask.astype(pos.dtype)
@@ -90,7 +94,9 @@ def multilaterate(
     x3, c3 = _solve(jnp.concatenate([-2.0 * q, ones[:, None]], axis=1), rhs, mask)
     est3, cov3 = x3[:3], c3[:3, :3]
     # Planar: unknowns (a_x, a_y, c'), height from c' - |a_xy|^2.
-    x2, c2 = _solve(jnp.stack([-2.0 * q[:, 0], -2.0 * q[:, 1], ones], axis=1), rhs + q[:, 2] ** 2, mask)
+    x2, c2 = _solve(
+        jnp.stack([-2.0 * q[:, 0], -2.0 * q[:, 1], ones], axis=1), rhs + q[:, 2] ** 2, mask
+    )
     h2 = x2[2] - x2[0] ** 2 - x2[1] ** 2
     h = jnp.sqrt(jnp.maximum(h2, 1e-6))
     g = jnp.array([-x2[0] / h, -x2[1] / h, 0.5 / h])
@@ -104,9 +110,13 @@ def multilaterate(
     return est, cov
 
 
-def multilaterate_all(pos, rng, mask, planar_tol_m: float = 0.3, side: float = 1.0, planar_ratio: float = 0.05):
+def multilaterate_all(
+    pos, rng, mask, planar_tol_m: float = 0.3, side: float = 1.0, planar_ratio: float = 0.05
+):
     """`multilaterate` vmapped over anchors: (A, n, 3), (A, n), (A, n) -> (A, 3), (A, 3, 3)."""
-    return jax.vmap(lambda p, r, m: multilaterate(p, r, m, planar_tol_m, side, planar_ratio))(pos, rng, mask)
+    return jax.vmap(lambda p, r, m: multilaterate(p, r, m, planar_tol_m, side, planar_ratio))(
+        pos, rng, mask
+    )
 
 
 def is_planar(z_std, h_std, planar_tol_m: float, planar_ratio: float):
@@ -128,10 +138,18 @@ def calibrate(dataset, params=None, config=None) -> Result:
     from jaxcal.trajectory.poses import prepare
 
     p = with_overrides(LSParams(), params)
-    groups, info = prepare(dataset, p.order, p.knot_dt_s, p.max_gap_s, p.time_offset_s,
-                           p.estimate_offset, p.max_offset_s)
+    groups, info = prepare(
+        dataset,
+        p.order,
+        p.knot_dt_s,
+        p.max_gap_s,
+        p.time_offset_s,
+        p.estimate_offset,
+        p.max_offset_s,
+    )
     est, cov = jax.jit(multilaterate_all, static_argnums=(3, 4, 5))(
-        groups.position, groups.range, groups.mask, p.planar_tol_m, p.side, p.planar_ratio)
+        groups.position, groups.range, groups.mask, p.planar_tol_m, p.side, p.planar_ratio
+    )
     return finish(dataset, "ls", p, groups, est, cov, info)
 
 
@@ -142,10 +160,20 @@ def finish(dataset, method, p, groups, est, cov, info) -> Result:
     est = np.array(est, dtype=float)
     cov = np.array(cov, dtype=float)
     count = np.asarray(groups.mask).sum(axis=1)
-    bad = (count < p.min_ranges) | ~np.isfinite(est).all(axis=1) | ~np.isfinite(cov).all(axis=(1, 2))
+    bad = (
+        (count < p.min_ranges) | ~np.isfinite(est).all(axis=1) | ~np.isfinite(cov).all(axis=(1, 2))
+    )
     est[bad] = np.nan
     cov[bad] = np.nan
     params = as_dict(p)
     params.update({f"info_{k}": v for k, v in info.items()})
-    return Result(ids=dataset.anchor_ids, position=est, method=method, dataset=dataset.name, frame="world",
-                  params=params, covariance=cov, software=f"jaxcal {__version__}")
+    return Result(
+        ids=dataset.anchor_ids,
+        position=est,
+        method=method,
+        dataset=dataset.name,
+        frame="world",
+        params=params,
+        covariance=cov,
+        software=f"jaxcal {__version__}",
+    )

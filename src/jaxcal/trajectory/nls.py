@@ -98,7 +98,9 @@ def solve_anchor(pos, rng, mask, init, p: NLSParams):
 
     def irls_round(carry, _):
         x, w = carry
-        sol = optx.least_squares(residual, solver, x, args=jnp.sqrt(w), max_steps=p.max_steps, throw=False)
+        sol = optx.least_squares(
+            residual, solver, x, args=jnp.sqrt(w), max_steps=p.max_steps, throw=False
+        )
         x = sol.value
         res = _dist(pos, x[:3]) + use_bias * x[3] - rng
         return (x, _weights(res, mask, p.loss, p.loss_scale_m, p.min_scale_m)), None
@@ -111,7 +113,9 @@ def solve_anchor(pos, rng, mask, init, p: NLSParams):
         jac = jac[:, :3]
     jtj = jac.T @ jac
     r = residual(x, sw)
-    dof = jnp.maximum(jnp.sum(w) * jnp.sum(mask) / jnp.maximum(jnp.sum(w), 1e-12) - jac.shape[1], 1.0)
+    dof = jnp.maximum(
+        jnp.sum(w) * jnp.sum(mask) / jnp.maximum(jnp.sum(w), 1e-12) - jac.shape[1], 1.0
+    )
     s2 = jnp.sum(r**2) / dof * jnp.sum(mask) / jnp.maximum(jnp.sum(w), 1e-12)
     cov = s2 * jnp.linalg.pinv(jtj)
     return x[:3], cov[:3, :3], x[3] * use_bias
@@ -144,8 +148,15 @@ def calibrate(dataset, params=None, config=None) -> Result:
     p = with_overrides(NLSParams(), params)
     if p.loss not in ("cauchy", "huber", "l2"):
         raise JaxcalError(f"parameter loss: expected cauchy, huber or l2, got {p.loss!r}")
-    groups, info = prepare(dataset, p.order, p.knot_dt_s, p.max_gap_s, p.time_offset_s,
-                           p.estimate_offset, p.max_offset_s)
+    groups, info = prepare(
+        dataset,
+        p.order,
+        p.knot_dt_s,
+        p.max_gap_s,
+        p.time_offset_s,
+        p.estimate_offset,
+        p.max_offset_s,
+    )
 
     est, cov, bias = _solve_all(groups.position, groups.range, groups.mask, p)
     info = dict(info, bias_m=[float(b) for b in bias])

@@ -105,12 +105,17 @@ def fit_poses(ds, order: int = 4, knot_dt_s: float = 0.0, max_gap_s: float = 0.0
     q = ds.pose_orientation
     if q is None:
         q = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (ds.pose_time.shape[0], 1))
-    return PoseModel(spline, jnp.asarray(ds.pose_time), jnp.asarray(ds.pose_position), jnp.asarray(q))
+    return PoseModel(
+        spline, jnp.asarray(ds.pose_time), jnp.asarray(ds.pose_position), jnp.asarray(q)
+    )
 
 
 def tag_positions(
-    model: PoseModel, lever_arm: Float[Array, "t 3"], range_time: Float[Array, " r"],
-    range_tag: Array, offset_s: Float[Array, ""] | float = 0.0,
+    model: PoseModel,
+    lever_arm: Float[Array, "t 3"],
+    range_time: Float[Array, " r"],
+    range_tag: Array,
+    offset_s: Float[Array, ""] | float = 0.0,
 ) -> Float[Array, "r 3"]:
     """World positions [m] of the ranging tag at each range time (traceable); NaN outside the poses.
 
@@ -134,7 +139,11 @@ def tag_positions(
 
 
 def group_by_anchor(
-    anchor: np.ndarray, position: np.ndarray, rng: np.ndarray, n_anchors: int, max_per_anchor: int = 0,
+    anchor: np.ndarray,
+    position: np.ndarray,
+    rng: np.ndarray,
+    n_anchors: int,
+    max_per_anchor: int = 0,
     seed: int = 0,
 ) -> AnchorRanges:
     """Group valid ranges per anchor into padded arrays (host side).
@@ -167,7 +176,9 @@ def group_by_anchor(
     return AnchorRanges(jnp.asarray(pos), jnp.asarray(r), jnp.asarray(m))
 
 
-def _offset_objective(model, lever_arm, range_time, range_tag, range_anchor, rng, n_anchors, n_per, offset):
+def _offset_objective(
+    model, lever_arm, range_time, range_tag, range_anchor, rng, n_anchors, n_per, offset
+):
     from jaxcal.trajectory.ls import multilaterate_all
 
     p = tag_positions(model, lever_arm, range_time, range_tag, offset)
@@ -180,7 +191,7 @@ def _offset_objective(model, lever_arm, range_time, range_tag, range_anchor, rng
     j = jnp.arange(n_per)
     take = start[:, None] + jnp.minimum(j[None, :], jnp.maximum(count[:, None] - 1, 0))
     idx = order[jnp.clip(take, 0, order.shape[0] - 1)]
-    mask = (j[None, :] < count[:, None])
+    mask = j[None, :] < count[:, None]
     pos = jnp.where(mask[..., None], jnp.nan_to_num(p[idx]), 0.0)
     rr = jnp.where(mask, jnp.nan_to_num(rng[idx]), 0.0)
     est, _ = multilaterate_all(pos, rr, mask)
@@ -215,10 +226,16 @@ def estimate_time_offset(
             idx = idx[np.linspace(0, idx.size - 1, max_per_anchor).round().astype(int)]
         sel.append(idx)
     sel = np.sort(np.concatenate(sel))
-    n_per = int(max(1, max((np.sum(ds.range_anchor[sel] == a) for a in range(ds.n_anchors)), default=1)))
+    n_per = int(
+        max(1, max((np.sum(ds.range_anchor[sel] == a) for a in range(ds.n_anchors)), default=1))
+    )
     args = (
-        model, jnp.asarray(ds.lever_arm), jnp.asarray(ds.range_time[sel]), jnp.asarray(ds.range_tag[sel]),
-        jnp.asarray(ds.range_anchor[sel]), jnp.asarray(r[sel]),
+        model,
+        jnp.asarray(ds.lever_arm),
+        jnp.asarray(ds.range_time[sel]),
+        jnp.asarray(ds.range_tag[sel]),
+        jnp.asarray(ds.range_anchor[sel]),
+        jnp.asarray(r[sel]),
     )
 
     @eqx.filter_jit
@@ -235,8 +252,14 @@ def estimate_time_offset(
 
 
 def prepare(
-    ds, order: int = 4, knot_dt_s: float = 0.0, max_gap_s: float = 0.0, time_offset_s: float = 0.0,
-    estimate_offset: bool = False, max_offset_s: float = 1.0, max_per_anchor: int = 0,
+    ds,
+    order: int = 4,
+    knot_dt_s: float = 0.0,
+    max_gap_s: float = 0.0,
+    time_offset_s: float = 0.0,
+    estimate_offset: bool = False,
+    max_offset_s: float = 1.0,
+    max_per_anchor: int = 0,
 ) -> tuple[AnchorRanges, dict]:
     """Tag positions at range time, grouped per anchor; the common front end of every method.
 
@@ -255,11 +278,20 @@ def prepare(
     if estimate_offset:
         offset = estimate_time_offset(model, ds, max_offset_s)
     p = np.asarray(
-        jax.jit(tag_positions)(model, jnp.asarray(ds.lever_arm), jnp.asarray(ds.range_time),
-                               jnp.asarray(ds.range_tag), offset)
+        jax.jit(tag_positions)(
+            model,
+            jnp.asarray(ds.lever_arm),
+            jnp.asarray(ds.range_time),
+            jnp.asarray(ds.range_tag),
+            offset,
+        )
     )
     r = np.asarray(ds.range, dtype=float)
     ok = np.isfinite(p).all(axis=1) & np.isfinite(r)
     groups = group_by_anchor(ds.range_anchor, p, r, ds.n_anchors, max_per_anchor)
-    info = {"time_offset_s": offset, "ranges_used": int(ok.sum()), "ranges_dropped": int((~ok).sum())}
+    info = {
+        "time_offset_s": offset,
+        "ranges_used": int(ok.sum()),
+        "ranges_dropped": int((~ok).sum()),
+    }
     return groups, info
