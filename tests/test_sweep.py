@@ -17,8 +17,8 @@ import pytest
 from conftest import ROOT, assert_one_line_error, run_cli
 from jaxcal import sweep as S
 from jaxcal.errors import JaxcalError
-from jaxcal.metrics import evaluate_mesh
 from jaxcal.mesh.pgp import run_pgp
+from jaxcal.metrics import evaluate_mesh
 from jaxcal.sim.mesh import simulate
 
 FIXED = dict(cell_m=2.0, max_hyp=4, top_k=8, min_refs=2, likelihood="dense")
@@ -44,9 +44,13 @@ N_RUNS = 12
 
 
 def test_metrics_equal_single_runs_and_evaluate():
-    doc = {"epochs": 12, "batch_size": 4, "params": FIXED,
-           "grid": {"sigma_r": [0.4, 1.5], "tau": [0.6, 0.95]},
-           "scenarios": [{"simulate": "small", "config": "conf1", "seeds": [3]}]}
+    doc = {
+        "epochs": 12,
+        "batch_size": 4,
+        "params": FIXED,
+        "grid": {"sigma_r": [0.4, 1.5], "tau": [0.6, 0.95]},
+        "scenarios": [{"simulate": "small", "config": "conf1", "seeds": [3]}],
+    }
     spec = S.parse_spec(doc)
     pl = S.plan(spec)
     ds = simulate("small", 3)
@@ -74,9 +78,13 @@ def test_metrics_equal_single_runs_and_evaluate():
 def test_no_recompilation_across_values(monkeypatch):
     fn = eqx.filter_jit(eqx.debug.assert_max_traces(S._batched, max_traces=1))
     monkeypatch.setattr(S, "run_batch", fn)
-    doc = {"epochs": 5, "batch_size": 2, "params": FIXED, "grid": {"sigma_r": [0.3, 0.6, 0.9, 1.2, 1.5, 2.0],
-                                                                   "sigma_v": [0.2, 0.5]},
-           "scenarios": [{"simulate": "small", "config": "conf1", "seeds": [0]}]}
+    doc = {
+        "epochs": 5,
+        "batch_size": 2,
+        "params": FIXED,
+        "grid": {"sigma_r": [0.3, 0.6, 0.9, 1.2, 1.5, 2.0], "sigma_v": [0.2, 0.5]},
+        "scenarios": [{"simulate": "small", "config": "conf1", "seeds": [0]}],
+    }
     spec = S.parse_spec(doc)
     pl = S.plan(spec)
     groups, group_of = S.build_groups([(simulate("small", 0), "conf1")], spec)
@@ -85,22 +93,34 @@ def test_no_recompilation_across_values(monkeypatch):
     assert eqx.debug.get_num_traces(fn) == 1
 
 
-@pytest.mark.parametrize("doc, fragment", [
-    ({"grid": {"cell_m": [1.0, 2.0]}, "scenarios": [{"simulate": "small"}]}, "only"),
-    ({"grid": {"sigma_r": [-1.0]}, "scenarios": [{"simulate": "small"}]}, "sigma_r"),
-    ({"grid": {"sigma_r": [1.0]}, "scenarios": []}, "scenarios"),
-    ({"scenarios": [{"simulate": "small", "file": "x.h5"}]}, "exactly one"),
-    ({"colour": 1, "scenarios": [{"simulate": "small"}]}, "unknown"),
-    ({"params": {"sigma_r": 1.0}, "grid": {"sigma_r": [1.0]}, "scenarios": [{"simulate": "small"}]}, "both"),
-])
+@pytest.mark.parametrize(
+    "doc, fragment",
+    [
+        ({"grid": {"cell_m": [1.0, 2.0]}, "scenarios": [{"simulate": "small"}]}, "only"),
+        ({"grid": {"sigma_r": [-1.0]}, "scenarios": [{"simulate": "small"}]}, "sigma_r"),
+        ({"grid": {"sigma_r": [1.0]}, "scenarios": []}, "scenarios"),
+        ({"scenarios": [{"simulate": "small", "file": "x.h5"}]}, "exactly one"),
+        ({"colour": 1, "scenarios": [{"simulate": "small"}]}, "unknown"),
+        (
+            {
+                "params": {"sigma_r": 1.0},
+                "grid": {"sigma_r": [1.0]},
+                "scenarios": [{"simulate": "small"}],
+            },
+            "both",
+        ),
+    ],
+)
 def test_bad_spec(doc, fragment):
     with pytest.raises(JaxcalError, match=fragment):
         S.parse_spec(doc)
 
 
 def _env(tmp_path, **extra):
-    e = {"JAX_COMPILATION_CACHE_DIR": str(tmp_path.parent / "jaxcache"),
-         "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+    e = {
+        "JAX_COMPILATION_CACHE_DIR": str(tmp_path.parent / "jaxcache"),
+        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
+    }
     e.update(extra)
     return e
 
@@ -136,9 +156,12 @@ def test_kill_and_resume_equals_uninterrupted(reference, tmp_path):
     spec, runs_ref, ref = reference
     out = tmp_path / "s.h5"
     env = dict(os.environ, JAX_PLATFORMS="cpu", **_env(spec.parent))
-    proc = subprocess.Popen([sys.executable, "-m", "jaxcal.cli", "sweep", str(spec), "-o", str(out),
-                             "--throttle", "2"], env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "jaxcal.cli", "sweep", str(spec), "-o", str(out), "--throttle", "2"],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.time() + 120
     n_done = 0
     while time.time() < deadline:
@@ -175,8 +198,14 @@ def test_kill_and_resume_equals_uninterrupted(reference, tmp_path):
 def test_four_virtual_devices_equal_one(reference, tmp_path):
     spec, _, ref = reference
     out = tmp_path / "d4.h5"
-    proc = run_cli("sweep", spec, "-o", out, "--json",
-                   env=_env(spec.parent, XLA_FLAGS="--xla_force_host_platform_device_count=4"))
+    proc = run_cli(
+        "sweep",
+        spec,
+        "-o",
+        out,
+        "--json",
+        env=_env(spec.parent, XLA_FLAGS="--xla_force_host_platform_device_count=4"),
+    )
     assert proc.returncode == 0, proc.stderr
     assert '"devices": 4' in proc.stdout
     _same(_metrics(out)[1], ref)
@@ -194,12 +223,34 @@ def test_two_processes_equal_one(reference, tmp_path):
     addr = f"127.0.0.1:{_free_port()}"
     env = dict(os.environ, JAX_PLATFORMS="cpu", **_env(spec.parent))
     env.pop("JAXCAL_DEBUG", None)
-    procs = [subprocess.Popen([sys.executable, "-m", "jaxcal.cli", "sweep", str(spec), "-o", str(out),
-                               "--coordinator", addr, "--num-processes", "2", "--process-id", str(i), "--json"],
-                              env=env, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-             for i in range(2)]
+    procs = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "jaxcal.cli",
+                "sweep",
+                str(spec),
+                "-o",
+                str(out),
+                "--coordinator",
+                addr,
+                "--num-processes",
+                "2",
+                "--process-id",
+                str(i),
+                "--json",
+            ],
+            env=env,
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i in range(2)
+    ]
     outs = [p.communicate(timeout=300) for p in procs]
-    for p, (so, se) in zip(procs, outs, strict=True):
+    for p, (_so, se) in zip(procs, outs, strict=True):
         assert p.returncode == 0, se
     # only process 0 writes and reports (gloo prints its own connection line on stdout)
     assert '"processes": 2' in outs[0][0] and "{" not in outs[1][0]

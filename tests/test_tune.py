@@ -27,19 +27,35 @@ def make_mesh(n=5, k=5, noise=0.15, seed=0, span=5.0, truth=True) -> MeshDataset
     r = np.abs(d[None] + rng.normal(0, noise, (k, n, n)))
     for e in range(k):
         np.fill_diagonal(r[e], np.nan)
-    return MeshDataset(name="t", node_ids=[f"n{i}" for i in range(n)], time=np.arange(k) * 0.1,
-                       range=r.astype(np.float32), truth=pos if truth else None)
+    return MeshDataset(
+        name="t",
+        node_ids=[f"n{i}" for i in range(n)],
+        time=np.arange(k) * 0.1,
+        range=r.astype(np.float32),
+        truth=pos if truth else None,
+    )
 
 
 # 15 x 15 cells of 1 m; broad posteriors (sigma_r ~ cell) so that tau and sigma_v matter
-SMALL = dict(cell_m=1.0, extent_m=7.0, margin_m=10.0, top_k=6, max_hyp=6, tau=0.6, sigma_r=0.8,
-             sigma_v=0.7, r_est=1.5, min_refs=2, likelihood="dense")
+SMALL = dict(
+    cell_m=1.0,
+    extent_m=7.0,
+    margin_m=10.0,
+    top_k=6,
+    max_hyp=6,
+    tau=0.6,
+    sigma_r=0.8,
+    sigma_v=0.7,
+    r_est=1.5,
+    min_refs=2,
+    likelihood="dense",
+)
 
 
 def test_soft_cut_reduces_to_hard_rule():
     rng = np.random.default_rng(1)
     cells = G.Grid(n_half=3, cell_m=1.0).cells(jnp.float64)
-    for trial in range(20):
+    for _trial in range(20):
         logp = jnp.asarray(rng.normal(0, 2.0, cells.shape[0]))
         logp = logp - jax.nn.logsumexp(logp)
         tau = jnp.asarray(rng.uniform(0.1, 0.95))
@@ -65,16 +81,27 @@ def test_gradient_matches_finite_differences(kind):
     g = np.asarray(jax.jit(jax.grad(T.objective))(theta, prob))
     assert np.all(np.isfinite(g)) and np.any(np.abs(g) > 1e-6)
     h = 1e-5
-    fd = np.array([(float(f(theta.at[i].add(h), prob)) - float(f(theta.at[i].add(-h), prob))) / (2 * h)
-                   for i in range(3)])
+    fd = np.array(
+        [
+            (float(f(theta.at[i].add(h), prob)) - float(f(theta.at[i].add(-h), prob))) / (2 * h)
+            for i in range(3)
+        ]
+    )
     # central differences in float64: truncation ~h^2, rounding ~1e-16 / h
     np.testing.assert_allclose(g, fd, rtol=2e-4, atol=1e-7)
 
 
 def test_tune_lowers_objective_and_hard_rule_is_reported():
     ds = make_mesh(k=6, seed=2)
-    res = T.tune(ds, {**SMALL, "sigma_r": 2.0}, None, objective_name="evidence", epochs=None,
-                 tau_temp=0.1, max_steps=8)
+    res = T.tune(
+        ds,
+        {**SMALL, "sigma_r": 2.0},
+        None,
+        objective_name="evidence",
+        epochs=None,
+        tau_temp=0.1,
+        max_steps=8,
+    )
     assert res.after <= res.before
     assert res.after < res.before - 1e-3  # sigma_r = 2 m is far too wide for 0.15 m noise
     assert res.params["sigma_r"] < 2.0
@@ -98,19 +125,47 @@ def test_cli_tune_then_calibrate(tmp_path):
     hdf5.write(f, ds)
     sets = [a for k, v in SMALL.items() if k != "cell_m" for a in ("--set", f"{k}={v}")]
     out = tmp_path / "p.json"
-    proc = run_cli("tune", f, "--objective", "evidence", "--epochs", "6", "--max-steps", "3", "-o", out,
-                   "--json", *sets)
+    proc = run_cli(
+        "tune",
+        f,
+        "--objective",
+        "evidence",
+        "--epochs",
+        "6",
+        "--max-steps",
+        "3",
+        "-o",
+        out,
+        "--json",
+        *sets,
+    )
     assert proc.returncode == 0, proc.stderr
     doc = json.loads(out.read_text())
     assert set(doc["params"]) >= {"sigma_r", "sigma_v", "tau", "top_k"}
-    assert doc["tuning"]["objective"] == "evidence" and doc["tuning"]["after"] <= doc["tuning"]["before"]
+    assert (
+        doc["tuning"]["objective"] == "evidence"
+        and doc["tuning"]["after"] <= doc["tuning"]["before"]
+    )
     res = tmp_path / "r.h5"
-    proc = run_cli("calibrate", f, "--method", "pgp", "--params", out, "--set", "cell_m=1.0",
-                   "--set", "extent_m=7", "-o", res)
+    proc = run_cli(
+        "calibrate",
+        f,
+        "--method",
+        "pgp",
+        "--params",
+        out,
+        "--set",
+        "cell_m=1.0",
+        "--set",
+        "extent_m=7",
+        "-o",
+        res,
+    )
     assert proc.returncode == 0, proc.stderr
     assert abs(hdf5.read(res).params["sigma_r"] - doc["params"]["sigma_r"]) < 1e-12
     # no truth: the truth objective is a one-line error
     g = tmp_path / "nt.h5"
     hdf5.write(g, make_mesh(truth=False))
-    assert_one_line_error(run_cli("tune", g, "--objective", "truth", "-o", tmp_path / "x.json"),
-                          "ground truth")
+    assert_one_line_error(
+        run_cli("tune", g, "--objective", "truth", "-o", tmp_path / "x.json"), "ground truth"
+    )

@@ -11,14 +11,16 @@ grid: the largest of their `prepare` grids (a dataset whose own grid is smaller 
 cells of uniform prior at the border; with a single dataset the grid is exactly `run_pgp`'s).
 
 Batches hold `batch_size` runs per device (the last one padded with copies of a run) and their
-leading axis is sharded over a 1-D mesh of `jax.devices()` (`NamedSharding`); under `jax.distributed` the mesh spans the devices of all
+leading axis is sharded over a 1-D mesh of `jax.devices()` (`NamedSharding`); under
+`jax.distributed` the mesh spans the devices of all
 processes, every process builds the same batches and computes its own shards, and the metrics are
 gathered to every process (`process_allgather`), so that process 0 can write them.
 
 Metrics per run (`METRICS`, all in the configuration frame, a0 excluded): `rmse_m` (every localised
-epoch estimate, as `jaxcal evaluate`), `final_rmse_m` (the final positions), `availability` (share of
-(epoch, node) estimates that exist), `localised` (nodes with a final estimate, of N - 1) and `nlpl`
-(negative log predictive likelihood of the ranges, nats per range factor, `tune.neg_log_predictive`).
+epoch estimate, as `jaxcal evaluate`), `final_rmse_m` (the final positions), `availability` (share
+of (epoch, node) estimates that exist), `localised` (nodes with a final estimate, of N - 1) and
+`nlpl` (negative log predictive likelihood of the ranges, nats per range factor,
+`tune.neg_log_predictive`).
 """
 
 from __future__ import annotations
@@ -38,7 +40,14 @@ from jaxcal.errors import JaxcalError
 from jaxcal.mesh import grid as G
 from jaxcal.mesh import pgp
 from jaxcal.params import with_overrides
-from jaxcal.tune import final_rmse, grid_span_m, neg_log_predictive, track_rmse, truth_in_filter_order, window
+from jaxcal.tune import (
+    final_rmse,
+    grid_span_m,
+    neg_log_predictive,
+    track_rmse,
+    truth_in_filter_order,
+    window,
+)
 
 __all__ = [
     "SWEEPABLE",
@@ -61,7 +70,7 @@ METRICS = ("rmse_m", "final_rmse_m", "availability", "localised", "nlpl")
 
 @dataclasses.dataclass(frozen=True)
 class Scenario:
-    """One source of datasets: `simulate` (a scenario name, one dataset per seed) or `file` (a path)."""
+    """A source of datasets: `simulate` (scenario name, one dataset per seed) or `file` (a path)."""
 
     label: str
     simulate: str | None
@@ -103,19 +112,30 @@ def parse_spec(doc: Mapping) -> SweepSpec:
     method = doc.get("method", "pgp")
     _need(method in ("pgp", "parametric"), f"method: pgp or parametric, got {method!r}")
     epochs = doc.get("epochs")
-    _need(epochs is None or (isinstance(epochs, int) and epochs >= 1), f"epochs: an integer >= 1, got {epochs!r}")
+    _need(
+        epochs is None or (isinstance(epochs, int) and epochs >= 1),
+        f"epochs: an integer >= 1, got {epochs!r}",
+    )
     bs = doc.get("batch_size", 16)
     _need(isinstance(bs, int) and bs >= 1, f"batch_size: an integer >= 1, got {bs!r}")
     params = dict(doc.get("params", {}))
     swept = set(doc.get("grid", {}))
-    _need(not (swept & set(params)), f"parameters both fixed and swept: {sorted(swept & set(params))}")
+    _need(
+        not (swept & set(params)), f"parameters both fixed and swept: {sorted(swept & set(params))}"
+    )
     with_overrides(pgp.PGPParams(), params)  # unknown names and bad types fail here
     grid = []
     for name, vals in dict(doc.get("grid", {})).items():
-        _need(name in SWEEPABLE, f"grid.{name}: only {', '.join(SWEEPABLE)} can be swept (others recompile)")
+        _need(
+            name in SWEEPABLE,
+            f"grid.{name}: only {', '.join(SWEEPABLE)} can be swept (others recompile)",
+        )
         vals = vals if isinstance(vals, list) else [vals]
-        _need(len(vals) >= 1 and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in vals),
-              f"grid.{name}: a list of numbers")
+        _need(
+            len(vals) >= 1
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in vals),
+            f"grid.{name}: a list of numbers",
+        )
         for v in vals:  # the same range checks as a single run
             pgp._validate(with_overrides(pgp.PGPParams(), {**params, name: float(v)}))
         grid.append((name, tuple(float(v) for v in vals)))
@@ -129,11 +149,22 @@ def parse_spec(doc: Mapping) -> SweepSpec:
         _need(("simulate" in s) != ("file" in s), f"scenarios[{k}]: exactly one of simulate, file")
         seeds = s.get("seeds", [0] if "simulate" in s else [-1])
         seeds = seeds if isinstance(seeds, list) else [seeds]
-        _need(all(isinstance(x, int) for x in seeds) and seeds, f"scenarios[{k}].seeds: a list of integers")
+        _need(
+            all(isinstance(x, int) for x in seeds) and seeds,
+            f"scenarios[{k}].seeds: a list of integers",
+        )
         _need("file" not in s or "seeds" not in s, f"scenarios[{k}]: seeds only apply to simulate")
         label = str(s.get("label", s.get("simulate") or s.get("file")))
-        out.append(Scenario(label, s.get("simulate"), s.get("file"), s.get("config"), tuple(seeds),
-                            tuple(sorted(dict(s.get("overrides", {})).items()))))
+        out.append(
+            Scenario(
+                label,
+                s.get("simulate"),
+                s.get("file"),
+                s.get("config"),
+                tuple(seeds),
+                tuple(sorted(dict(s.get("overrides", {})).items())),
+            )
+        )
     return SweepSpec(method, epochs, tuple(sorted(params.items())), tuple(grid), tuple(out), bs)
 
 
@@ -168,7 +199,11 @@ def plan(spec: SweepSpec) -> Plan:
                 ds_of.append(len(ds) - 1)
                 for n, v in zip(names, c, strict=True):
                     vals[n].append(v)
-    return Plan(np.asarray(ds_of, np.int64), tuple(ds), {n: np.asarray(v, np.float64) for n, v in vals.items()})
+    return Plan(
+        np.asarray(ds_of, np.int64),
+        tuple(ds),
+        {n: np.asarray(v, np.float64) for n, v in vals.items()},
+    )
 
 
 class Group(eqx.Module):
@@ -220,13 +255,28 @@ def build_groups(
             truths.append(jnp.asarray(truth_in_filter_order(w, config, order), prm.sigma_r.dtype))
             group_of[d] = len(groups)
         stack = lambda *xs: jnp.stack(xs)  # noqa: E731
-        groups.append(Group(cfg, prepared[members[0]][3], jax.tree.map(stack, *inps), jnp.stack(lps),
-                            jnp.stack(truths), tuple(members), grid_span_m(cfg)))
+        groups.append(
+            Group(
+                cfg,
+                prepared[members[0]][3],
+                jax.tree.map(stack, *inps),
+                jnp.stack(lps),
+                jnp.stack(truths),
+                tuple(members),
+                grid_span_m(cfg),
+            )
+        )
     return groups, group_of
 
 
-def run_metrics(cfg: pgp.FilterConfig, prm: pgp.FilterParams, inp: pgp.FilterInputs, logpost0, truth,
-                span_m: float) -> dict[str, Float[Array, ""]]:
+def run_metrics(
+    cfg: pgp.FilterConfig,
+    prm: pgp.FilterParams,
+    inp: pgp.FilterInputs,
+    logpost0,
+    truth,
+    span_m: float,
+) -> dict[str, Float[Array, ""]]:
     """Run the filter once and reduce it to the sweep's metrics (one run; `run_batch` vmaps it)."""
     _, out = pgp._filter(cfg, prm, inp, logpost0)
     est = out.estimate
@@ -241,7 +291,9 @@ def run_metrics(cfg: pgp.FilterConfig, prm: pgp.FilterParams, inp: pgp.FilterInp
 
 
 def _batched(cfg, prm, inp, logpost0, truth, span_m):
-    return jax.vmap(run_metrics, in_axes=(None, 0, 0, 0, 0, None))(cfg, prm, inp, logpost0, truth, span_m)
+    return jax.vmap(run_metrics, in_axes=(None, 0, 0, 0, 0, None))(
+        cfg, prm, inp, logpost0, truth, span_m
+    )
 
 
 # One compilation per (group config, batch shape): parameter values and datasets are array data.
@@ -255,7 +307,9 @@ def _shard(tree, mesh):
     sh = NamedSharding(mesh, PartitionSpec("runs"))
     if jax.process_count() == 1:
         return jax.device_put(tree, sh)
-    return jax.tree.map(lambda a: jax.make_array_from_callback(a.shape, sh, lambda idx: a[idx]), tree)
+    return jax.tree.map(
+        lambda a: jax.make_array_from_callback(a.shape, sh, lambda idx: a[idx]), tree
+    )
 
 
 def _gather(tree) -> dict:
@@ -276,7 +330,7 @@ def execute(
 ) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
     """Run every run not yet `done`, batch by batch.
 
-    Batches are fixed chunks of each group's runs (so an interrupted sweep rebuilds the same batches);
+    Batches are fixed chunks of each group's runs (an interrupted sweep rebuilds the same batches);
     a chunk whose runs are all done is skipped, and only its runs not done are computed.
 
     Args:
@@ -298,7 +352,7 @@ def execute(
         runs = np.flatnonzero(run_group == gi)
         local = {d: k for k, d in enumerate(g.members)}
         for start in range(0, runs.size, bsz):
-            chunk = runs[start:start + bsz]
+            chunk = runs[start : start + bsz]
             todo = chunk[~done[chunk]]
             if todo.size == 0:
                 continue
@@ -308,9 +362,13 @@ def execute(
             for name, vals in pl.values.items():
                 prm = dataclasses.replace(prm, **{name: vals[padded]})
             dtype = np.asarray(g.base.sigma_r).dtype
-            prm = jax.tree.map(lambda a: np.broadcast_to(np.asarray(a, dtype), (bsz,)), prm)
-            host = (prm, jax.tree.map(lambda a: np.asarray(a)[ds_idx], g.inp),
-                    np.asarray(g.logpost0)[ds_idx], np.asarray(g.truth)[ds_idx])
+            prm = jax.tree.map(lambda a, t=dtype: np.broadcast_to(np.asarray(a, t), (bsz,)), prm)
+            host = (
+                prm,
+                jax.tree.map(lambda a, i=ds_idx: np.asarray(a)[i], g.inp),
+                np.asarray(g.logpost0)[ds_idx],
+                np.asarray(g.truth)[ds_idx],
+            )
             args = _shard(host, mesh)
             out = _gather(run_batch(g.cfg, *args, g.span_m))
             yield todo, {k: np.asarray(v, np.float64)[: todo.size] for k, v in out.items()}
@@ -321,4 +379,3 @@ def simulate_or_raise(sc: Scenario, seed: int) -> MeshDataset:
     from jaxcal.sim.mesh import simulate
 
     return simulate(sc.simulate, seed, **dict(sc.overrides))
-

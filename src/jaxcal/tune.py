@@ -1,7 +1,7 @@
-"""Differentiable tuning of the PGP filter's sigma_r, sigma_v and tau (Optimistix BFGS through the scan).
+"""Differentiable tuning of the PGP filter's sigma_r, sigma_v and tau (Optimistix BFGS, scan).
 
 The filter of `jaxcal.mesh.pgp` is differentiable in its numeric parameters except for the hard
-hypothesis cut of eq. (10), whose derivative in `tau` is zero almost everywhere. Tuning therefore runs
+hypothesis cut of eq. (10), whose derivative in `tau` is zero almost everywhere. Tuning thus runs
 the filter with `select="soft"`: cell l of a node's sorted cells is weighted by
 `sigmoid((tau - m_l) / tau_temp)`, `m_l` the probability mass before it (`grid.soft_hypotheses`; the
 hard rule is the limit `tau_temp -> 0`). The parameters are optimised unconstrained as
@@ -9,13 +9,14 @@ hard rule is the limit `tau_temp -> 0`). The parameters are optimised unconstrai
 
 Objectives (both per tuning window, the first `epochs` epochs of the dataset):
 
-- `truth`: RMSE [m] of every localised (epoch, node) estimate except a0 against the ground truth in the
-  configuration frame (the `rmse_m` of `jaxcal evaluate`).
+- `truth`: RMSE [m] of the final positions (a0 excluded) against the ground truth in the
+  configuration frame, each position the tempered eq. (13) estimate of `soft_estimates` (a grid
+  posterior collapses into one cell, where eq. 13 itself is piecewise constant: zero gradient).
 - `evidence`: negative log predictive likelihood of the measured ranges, in nats per range factor.
   Per epoch and node, before the update, the log normaliser of eq. (12), `log sum_g pbar(g) L(g)`
   (`FilterOut.log_evidence`), with each eq. (11) factor read as a density of the range z on [0, L]:
   `f(z | g) = ((1 - p_out) sum_l w_l exp(-(|g - g_l| - z)^2 / 2 sigma_r^2) + p_out) / Z`,
-  `Z = (1 - p_out) sigma_r sqrt(2 pi) + p_out L`, L = the grid's diagonal (the longest range the grid
+  `Z = (1 - p_out) sigma_r sqrt(2 pi) + p_out L`, L = the grid's diagonal (the longest range it
   can explain). This is the filter's own factor up to a constant in z, so the filter's posterior is
   exactly the one this density model implies; with `p_out = 0` it is the Gaussian of eq. (11). No
   ground truth is needed. (Nodes update independently given the others' hypotheses, so the sum over
@@ -23,7 +24,7 @@ Objectives (both per tuning window, the first `epochs` epochs of the dataset):
 
 Memory: reverse mode through `lax.scan` keeps the carry of every epoch, `(epochs, nodes, cells)`
 log posteriors (12 nodes x 63^2 cells x 200 epochs x 8 B = 76 MB for torgau at 1 m cells), and with
-`FilterConfig.remat` each epoch's intermediates are recomputed in the backward pass instead of stored
+`FilterConfig.remat` each epoch's intermediates are recomputed in the backward pass, not stored
 (without it the eq. (11) intermediates take gigabytes). Defaults: 1.0 m cells, 200 epochs, float64.
 """
 
@@ -72,11 +73,17 @@ def window(dataset: MeshDataset, epochs: int | None) -> MeshDataset:
     if epochs < 1:
         raise JaxcalError(f"epochs: must be >= 1, got {epochs}")
     k = int(epochs)
-    opt = {f: getattr(dataset, f)[:k] for f in ("fp_rssi", "rx_rssi") if getattr(dataset, f) is not None}
+    opt = {
+        f: getattr(dataset, f)[:k]
+        for f in ("fp_rssi", "rx_rssi")
+        if getattr(dataset, f) is not None
+    }
     return dataclasses.replace(dataset, time=dataset.time[:k], range=dataset.range[:k], **opt)
 
 
-def truth_in_filter_order(dataset: MeshDataset, config: str | None, order: np.ndarray) -> np.ndarray:
+def truth_in_filter_order(
+    dataset: MeshDataset, config: str | None, order: np.ndarray
+) -> np.ndarray:
     """(N, 2) true positions in the configuration frame, rows in filter order; NaN when unknown.
 
     As `metrics.truth_in_result_frame`: the frame is built in 3-D when the truth is 3-D, then x, y.
@@ -91,7 +98,9 @@ def truth_in_filter_order(dataset: MeshDataset, config: str | None, order: np.nd
     return to_frame(t, a0, a1, a2)[:, :2][order]
 
 
-def track_rmse(est: Float[Array, "epochs nodes 2"], truth: Float[Array, "nodes 2"]) -> Float[Array, ""]:
+def track_rmse(
+    est: Float[Array, "epochs nodes 2"], truth: Float[Array, "nodes 2"]
+) -> Float[Array, ""]:
     """RMSE [m] over every finite (epoch, node) estimate except node 0 (a0) with a known truth.
 
     Differentiable: missing estimates are replaced before squaring, so their NaN never reaches a
@@ -106,8 +115,10 @@ def track_rmse(est: Float[Array, "epochs nodes 2"], truth: Float[Array, "nodes 2
     return jnp.where(cnt > 0, jnp.sqrt(jnp.where(cnt > 0, mse, 1.0)), jnp.nan)
 
 
-def final_rmse(est: Float[Array, "epochs nodes 2"], truth: Float[Array, "nodes 2"]) -> Float[Array, ""]:
-    """RMSE [m] of the last epoch's estimates, a0 excluded (the `final_rmse_m` of `jaxcal evaluate`)."""
+def final_rmse(
+    est: Float[Array, "epochs nodes 2"], truth: Float[Array, "nodes 2"]
+) -> Float[Array, ""]:
+    """RMSE [m] of the last epoch's estimates, a0 excluded (`final_rmse_m` of `jaxcal evaluate`)."""
     return track_rmse(est[-1:], truth)
 
 
@@ -118,7 +129,7 @@ def neg_log_predictive(
 
     Args:
         out: per-epoch filter outputs (`log_evidence`, `n_factors` of shape (K, N)).
-        sigma_r: range std [m]. p_out: floor weight. span_m: L, the support of the range density [m].
+        sigma_r: range std [m]. p_out: floor weight. span_m: L, support of the range density [m].
 
     Returns:
         `-(sum log_evidence - n_factors log Z) / sum n_factors`; NaN when no range was used.
@@ -162,7 +173,7 @@ def make_problem(
         dataset: the (windowed) mesh dataset. params: filter parameters (the start point).
         config: frame configuration name. kind: "truth" or "evidence".
         tau_temp: temperature of the soft cut (mass units; 0 gives the hard rule, not differentiable
-            in tau). remat: checkpoint every epoch (memory O(epochs x carry) instead of all intermediates).
+            in tau). remat: checkpoint every epoch (memory ~ epochs x carry).
         est_temp: temperature of the `truth` objective's estimate (`soft_estimates`, nats).
 
     Returns:
@@ -177,9 +188,19 @@ def make_problem(
     prm = dataclasses.replace(prm, tau_temp=jnp.asarray(max(tau_temp, 1e-12), ftype))
     truth = truth_in_filter_order(dataset, config, order)
     if kind == "truth" and not np.isfinite(truth[1:]).any():
-        raise JaxcalError(f"{dataset.name}: objective 'truth' needs ground truth (use --objective evidence)")
-    prob = Problem(cfg, prm, inp, lp0, jnp.asarray(truth, ftype), jnp.asarray(est_temp, ftype),
-                   grid_span_m(cfg), kind)
+        raise JaxcalError(
+            f"{dataset.name}: objective 'truth' needs ground truth (use --objective evidence)"
+        )
+    prob = Problem(
+        cfg,
+        prm,
+        inp,
+        lp0,
+        jnp.asarray(truth, ftype),
+        jnp.asarray(est_temp, ftype),
+        grid_span_m(cfg),
+        kind,
+    )
     return prob, order
 
 
@@ -198,17 +219,22 @@ def theta_of(sigma_r: float, sigma_v: float, tau: float, dtype=None) -> Float[Ar
 def values_of(theta) -> dict[str, float]:
     """{sigma_r, sigma_v, tau} of unconstrained parameters."""
     t = np.asarray(theta, dtype=np.float64)
-    return {"sigma_r": float(np.exp(t[0])), "sigma_v": float(np.exp(t[1])),
-            "tau": float(1.0 / (1.0 + np.exp(-t[2])))}
+    return {
+        "sigma_r": float(np.exp(t[0])),
+        "sigma_v": float(np.exp(t[1])),
+        "tau": float(1.0 / (1.0 + np.exp(-t[2]))),
+    }
 
 
 def objective(theta: Float[Array, " 3"], prob: Problem) -> Float[Array, ""]:
-    """The tuning objective at theta = (log sigma_r, log sigma_v, logit tau): RMSE [m] or NLPL [nats]."""
+    """Objective at theta = (log sigma_r, log sigma_v, logit tau): RMSE [m] or NLPL [nats]."""
     prm = _with_theta(prob.prm, theta)
     st, out = pgp._filter(prob.cfg, prm, prob.inp, prob.logpost0)
     if prob.kind == "truth":
         radius = jnp.maximum(prm.r_est, 1.5 * prob.cfg.grid.cell_m)
-        est = soft_estimates(st.logpost, prob.cfg.grid.cells(st.logpost.dtype), radius, prob.est_temp)
+        est = soft_estimates(
+            st.logpost, prob.cfg.grid.cells(st.logpost.dtype), radius, prob.est_temp
+        )
         loc = jnp.isfinite(out.estimate[-1]).all(-1)
         est = jnp.where(loc[:, None], est, jnp.nan)
         return final_rmse(est[None], prob.truth)
@@ -239,7 +265,7 @@ _value = eqx.filter_jit(objective)
 
 
 def _hard_metrics(theta, prob: Problem) -> dict[str, float]:
-    """RMSE, final RMSE and NLPL of the filter with the hard cut of eq. (10) (what `calibrate` runs)."""
+    """RMSE, final RMSE, NLPL with the hard cut of eq. (10) (what `calibrate` runs)."""
     prm = _with_theta(prob.prm, theta)
     cfg = dataclasses.replace(prob.cfg, select="hard", remat=False)
     _, out = pgp.run_filter(cfg, prm, prob.inp, prob.logpost0)
@@ -312,7 +338,9 @@ def tune(
     theta0 = theta_of(params.sigma_r, params.sigma_v, params.tau, dtype)
     before = float(_value(theta0, prob))
     if not math.isfinite(before):
-        raise JaxcalError(f"{dataset.name}: the objective is undefined at the start (no node localised?)")
+        raise JaxcalError(
+            f"{dataset.name}: the objective is undefined at the start (no node localised?)"
+        )
     sol = _minimise(theta0, prob, rtol, atol, max_steps)
     theta = sol.value
     after = float(_value(theta, prob))
@@ -329,8 +357,15 @@ def tune(
         hard_after=_hard_metrics(theta, prob),
         steps=int(sol.stats["num_steps"]),
         converged=bool(ok),
-        message=str(optx.RESULTS[sol.result]) if not ok else "successful",
-        settings={"epochs": ds.n_epochs, "cell_m": params.cell_m, "n_cells_side": prob.cfg.grid.n_side,
-                  "tau_temp": tau_temp, "dtype": str(dtype), "rtol": rtol, "atol": atol,
-                  "max_steps": max_steps},
+        message="successful" if ok else str(optx.RESULTS[sol.result]).split(".")[0],
+        settings={
+            "epochs": ds.n_epochs,
+            "cell_m": params.cell_m,
+            "n_cells_side": prob.cfg.grid.n_side,
+            "tau_temp": tau_temp,
+            "dtype": str(dtype),
+            "rtol": rtol,
+            "atol": atol,
+            "max_steps": max_steps,
+        },
     )

@@ -13,15 +13,40 @@ FORMAT = "jaxcal-sweep"
 
 def add_arguments(p) -> None:
     p.add_argument("spec", help="sweep specification (TOML, see docs/cluster.md)")
-    p.add_argument("-o", "--output", required=True, metavar="SWEEP.h5", help="results (created or resumed)")
-    p.add_argument("--restart", action="store_true", help="discard an existing output instead of resuming")
-    p.add_argument("--batch-size", type=int, default=None, help="runs per device in one batch (overrides the spec)")
-    p.add_argument("--coordinator", default=None, metavar="HOST:PORT",
-                   help="jax.distributed coordinator address (multi-process sweep)")
-    p.add_argument("--num-processes", type=int, default=None, help="number of processes (with --coordinator)")
-    p.add_argument("--process-id", type=int, default=None, help="this process's id, 0 .. P-1 (with --coordinator)")
-    p.add_argument("--throttle", type=float, default=0.0, metavar="SECONDS",
-                   help="pause after each batch (demonstrating interruption and resumption)")
+    p.add_argument(
+        "-o", "--output", required=True, metavar="SWEEP.h5", help="results (created or resumed)"
+    )
+    p.add_argument(
+        "--restart", action="store_true", help="discard an existing output instead of resuming"
+    )
+    p.add_argument(
+        "--batch-size",
+        type=int,
+        default=None,
+        help="runs per device in one batch (overrides the spec)",
+    )
+    p.add_argument(
+        "--coordinator",
+        default=None,
+        metavar="HOST:PORT",
+        help="jax.distributed coordinator address (multi-process sweep)",
+    )
+    p.add_argument(
+        "--num-processes", type=int, default=None, help="number of processes (with --coordinator)"
+    )
+    p.add_argument(
+        "--process-id",
+        type=int,
+        default=None,
+        help="this process's id, 0 .. P-1 (with --coordinator)",
+    )
+    p.add_argument(
+        "--throttle",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="pause after each batch (demonstrating interruption and resumption)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
 
@@ -140,8 +165,11 @@ def run(args) -> int:
     import jax
 
     if args.coordinator:
-        jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes,
-                                   process_id=args.process_id)
+        jax.distributed.initialize(
+            coordinator_address=args.coordinator,
+            num_processes=args.num_processes,
+            process_id=args.process_id,
+        )
     import numpy as np
 
     from jaxcal import sweep as S
@@ -151,11 +179,15 @@ def run(args) -> int:
     pl = S.plan(spec)
     writer = jax.process_index() == 0
     # batch size changes neither runs nor results: it is not part of the identity of a sweep
-    ident = hashlib.sha256(repr((spec.method, spec.epochs, spec.params, spec.grid, spec.scenarios)).encode())
+    ident = hashlib.sha256(
+        repr((spec.method, spec.epochs, spec.params, spec.grid, spec.scenarios)).encode()
+    )
     ident = ident.hexdigest()
     runs = {
         "scenario": np.asarray([spec.scenarios[pl.datasets[d][0]].label for d in pl.dataset_of]),
-        "config": np.asarray([spec.scenarios[pl.datasets[d][0]].config or "" for d in pl.dataset_of]),
+        "config": np.asarray(
+            [spec.scenarios[pl.datasets[d][0]].config or "" for d in pl.dataset_of]
+        ),
         "seed": np.asarray([pl.datasets[d][1] for d in pl.dataset_of], np.int64),
         **{f"param_{k}": v for k, v in pl.values.items()},
     }
@@ -165,23 +197,40 @@ def run(args) -> int:
     if writer and out.exists() and not args.restart:
         attrs, _, old_metrics, old_done = read_store(str(out))
         if attrs.get("spec_id") != ident or old_done.shape != done.shape:
-            raise JaxcalError(f"{out}: written by a different sweep spec (use --restart or another output)")
+            raise JaxcalError(
+                f"{out}: written by a different sweep spec (use --restart or another output)"
+            )
         done, metrics = old_done, {k: old_metrics.get(k, metrics[k]) for k in S.METRICS}
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
 
         done = np.array(multihost_utils.broadcast_one_to_all(done), dtype=bool)  # a writable copy
-    attrs = {"format": FORMAT, "spec_id": ident, "spec_toml": text, "method": spec.method,
-             "epochs": -1 if spec.epochs is None else spec.epochs,
-             "fixed_params": repr(dict(spec.params)), "swept": ",".join(pl.values)}
+    attrs = {
+        "format": FORMAT,
+        "spec_id": ident,
+        "spec_toml": text,
+        "method": spec.method,
+        "epochs": -1 if spec.epochs is None else spec.epochs,
+        "fixed_params": repr(dict(spec.params)),
+        "swept": ",".join(pl.values),
+    }
     resumed = int(done.sum())
     todo = pl.n_runs - resumed
-    log = (lambda msg: sys.stderr.write(msg + "\n")) if writer and not args.quiet else (lambda msg: None)
-    log(f"sweep: {pl.n_runs} runs on {jax.device_count()} device(s) in {jax.process_count()} process(es)"
-        + (f", resuming with {resumed} done" if resumed else ""))
+    log = (
+        (lambda msg: sys.stderr.write(msg + "\n"))
+        if writer and not args.quiet
+        else (lambda msg: None)
+    )
+    log(
+        f"sweep: {pl.n_runs} runs on {jax.device_count()} device(s) in "
+        f"{jax.process_count()} process(es)"
+        + (f", resuming with {resumed} done" if resumed else "")
+    )
     computed, t0 = 0, time.perf_counter()
     if todo:
-        groups, group_of = S.build_groups(_datasets(spec, pl, os.path.dirname(os.path.abspath(args.spec))), spec)
+        groups, group_of = S.build_groups(
+            _datasets(spec, pl, os.path.dirname(os.path.abspath(args.spec))), spec
+        )
         if writer:
             _write_store(out, attrs, runs, metrics, done)
         for idx, vals in S.execute(spec, pl, groups, group_of, done):
@@ -194,18 +243,30 @@ def run(args) -> int:
             el = time.perf_counter() - t0
             rate = computed / el if el > 0 else float("nan")
             eta = (todo - computed) / rate if rate > 0 else float("nan")
-            log(f"sweep: {int(done.sum())}/{pl.n_runs} runs ({100 * done.mean():.0f} %), {rate:.2f} runs/s, "
-                f"ETA {eta:.0f} s")
+            log(
+                f"sweep: {int(done.sum())}/{pl.n_runs} runs ({100 * done.mean():.0f} %), "
+                f"{rate:.2f} runs/s, "
+                f"ETA {eta:.0f} s"
+            )
             if args.throttle > 0:
                 time.sleep(args.throttle)
     elif writer:
         _write_store(out, attrs, runs, metrics, done)
     el = time.perf_counter() - t0
     if writer:
-        summary = {"output": str(out), "runs": pl.n_runs, "computed": computed, "resumed": resumed,
-                   "seconds": el, "devices": jax.device_count(), "processes": jax.process_count()}
+        summary = {
+            "output": str(out),
+            "runs": pl.n_runs,
+            "computed": computed,
+            "resumed": resumed,
+            "seconds": el,
+            "devices": jax.device_count(),
+            "processes": jax.process_count(),
+        }
         if args.json:
             print_json(summary)
         else:
-            print(f"sweep: {computed} runs computed ({resumed} already done) in {el:.1f} s -> {out}")
+            print(
+                f"sweep: {computed} runs computed ({resumed} already done) in {el:.1f} s -> {out}"
+            )
     return 0

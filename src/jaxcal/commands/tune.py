@@ -1,5 +1,6 @@
-"""`jaxcal tune FILE --method pgp --objective truth|evidence -o PARAMS.json [--config NAME] [--epochs K]
-[--cell M] [--set K=V ...]`: fit sigma_r, sigma_v and tau of the PGP filter by gradient (Optimistix BFGS)."""
+"""`jaxcal tune FILE --method pgp --objective truth|evidence -o PARAMS.json [--config NAME]
+[--epochs K] [--cell M] [--set K=V ...]`: fit sigma_r, sigma_v and tau of the PGP filter by
+gradient (Optimistix BFGS)."""
 
 from __future__ import annotations
 
@@ -7,18 +8,36 @@ from __future__ import annotations
 def add_arguments(p) -> None:
     p.add_argument("dataset", help="a mesh file")
     p.add_argument("--method", default="pgp", choices=["pgp"], help="filter to tune (pgp)")
-    p.add_argument("--objective", default="truth", choices=["truth", "evidence"],
-                   help="truth: RMSE of the final positions (needs ground truth); evidence: negative log "
-                        "predictive likelihood of the ranges (no truth needed)")
-    p.add_argument("-o", "--output", required=True, metavar="PARAMS.json",
-                   help="parameters for `jaxcal calibrate --params`")
+    p.add_argument(
+        "--objective",
+        default="truth",
+        choices=["truth", "evidence"],
+        help="truth: RMSE of the final positions (needs ground truth); evidence: negative log "
+        "predictive likelihood of the ranges (no truth needed)",
+    )
+    p.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        metavar="PARAMS.json",
+        help="parameters for `jaxcal calibrate --params`",
+    )
     p.add_argument("--config", default=None, help="mesh frame configuration (configs/<NAME>)")
-    p.add_argument("--epochs", type=int, default=200, help="tuning window: the first K epochs (200)")
+    p.add_argument(
+        "--epochs", type=int, default=200, help="tuning window: the first K epochs (200)"
+    )
     p.add_argument("--cell", type=float, default=1.0, help="grid cell size while tuning [m] (1.0)")
     p.add_argument("--max-steps", type=int, default=30, help="BFGS step limit (30)")
-    p.add_argument("--tau-temp", type=float, default=0.05, help="temperature of the soft tau cut (0.05)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="fixed filter parameter (also the start of sigma_r, sigma_v, tau)")
+    p.add_argument(
+        "--tau-temp", type=float, default=0.05, help="temperature of the soft tau cut (0.05)"
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="fixed filter parameter (also the start of sigma_r, sigma_v, tau)",
+    )
     p.add_argument("--json", action="store_true", help="print the outcome as one JSON object")
 
 
@@ -44,16 +63,27 @@ def run(args) -> int:
     from jaxcal import tune as T
 
     with jax.enable_x64(True):  # gradients through 200 epochs of log posteriors need float64
-        res = T.tune(ds, {**user, "cell_m": args.cell}, args.config, objective_name=args.objective,
-                     epochs=args.epochs, tau_temp=args.tau_temp, max_steps=args.max_steps)
+        res = T.tune(
+            ds,
+            {**user, "cell_m": args.cell},
+            args.config,
+            objective_name=args.objective,
+            epochs=args.epochs,
+            tau_temp=args.tau_temp,
+            max_steps=args.max_steps,
+        )
     from jaxcal.mesh.pgp import PGPParams
     from jaxcal.params import with_overrides
 
     fixed = {k: getattr(with_overrides(PGPParams(), user), k) for k in user}
     doc = {
         "params": {**fixed, **res.params},
-        "tuning": {"method": args.method, "dataset": ds.name, "config": args.config,
-                   **{f.name: getattr(res, f.name) for f in dataclasses.fields(res) if f.name != "params"}},
+        "tuning": {
+            "method": args.method,
+            "dataset": ds.name,
+            "config": args.config,
+            **{f.name: getattr(res, f.name) for f in dataclasses.fields(res) if f.name != "params"},
+        },
     }
     out = Path(args.output)
     fd, tmp = tempfile.mkstemp(dir=out.parent if str(out.parent) else ".", suffix=".tmp")
@@ -64,8 +94,11 @@ def run(args) -> int:
         print_json(doc)
     else:
         p, hb, ha = res.params, res.hard_before, res.hard_after
-        print(f"tune {args.objective}: {res.before:.4g} -> {res.after:.4g} in {res.steps} steps "
-              f"({res.message}); sigma_r={p['sigma_r']:.3f} m sigma_v={p['sigma_v']:.3f} m tau={p['tau']:.3f}; "
-              f"window rmse {hb['rmse_m']:.3f} -> {ha['rmse_m']:.3f} m, nlpl {hb['nlpl']:.3f} -> "
-              f"{ha['nlpl']:.3f} -> {out}")
+        print(
+            f"tune {args.objective}: {res.before:.4g} -> {res.after:.4g} in {res.steps} steps "
+            f"({res.message}); sigma_r={p['sigma_r']:.3f} m sigma_v={p['sigma_v']:.3f} m "
+            f"tau={p['tau']:.3f}; "
+            f"window rmse {hb['rmse_m']:.3f} -> {ha['rmse_m']:.3f} m, nlpl {hb['nlpl']:.3f} -> "
+            f"{ha['nlpl']:.3f} -> {out}"
+        )
     return 0
