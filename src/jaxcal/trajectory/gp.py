@@ -396,7 +396,11 @@ def _calibrate_all(x, r, mask, centre, half, planar, p: GPParams, n_rounds: int,
         else:
             dd = jax.grad(lambda y: from_target(y, "inv-log"))(mu[0])
             sd = jnp.abs(dd) * jnp.sqrt(var[0])
-        height = jnp.maximum(d_hat, 0.0)
+        # Clip to the anchor's range span: far from the data an inv-log prediction near 0 maps to
+        # an enormous range.
+        r_max = jnp.max(jnp.where(m, r, 0.0))
+        height = jnp.clip(d_hat, 0.0, r_max)
+        sd = jnp.minimum(sd, r_max)
         est = jnp.where(pl, est.at[2].set(est[2] + p.side * height), est)
         return est + origin, cov + sd**2 * jnp.eye(3), h
 
