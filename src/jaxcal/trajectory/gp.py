@@ -48,6 +48,7 @@ import math
 
 import equinox as eqx
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
@@ -69,6 +70,9 @@ __all__ = [
     "stratified_subsample",
     "to_target",
     "from_target",
+    "MeanModel",
+    "mean_model_nlml",
+    "fit_mean_model",
     "calibrate",
 ]
 
@@ -78,6 +82,9 @@ class GPParams(eqx.Module):
 
     Attributes:
         target: `range` (paper text) or `inv-log` (public code: 1 / log10(sqrt(r) + 1)).
+        mean: `constant` (the paper: sample mean of the ranges, zero for `inv-log`, then the cuboid
+            search) or `anchor` (parametric mean |p - a| + b fitted jointly with the kernel by the
+            marginal likelihood, initialised from `nls`; the anchor is a, no search).
         nu: Matern smoothness (1.5 as in the paper; 5/3 as in the public code).
         n_train: training ranges per anchor (stratified subsample by range); n_bins: range strata.
         seed: subsampling seed.
@@ -93,6 +100,7 @@ class GPParams(eqx.Module):
     """
 
     target: str = "range"
+    mean: str = "constant"
     nu: float = 1.5
     n_train: int = 300
     n_bins: int = 10
@@ -368,6 +376,96 @@ def stratified_subsample(rng_m: np.ndarray, n_train: int, n_bins: int, seed: int
     return np.sort(np.concatenate([chosen, extra]))
 
 
+# ----------------------------------------------------------------------------- parametric mean
+
+
+class MeanModel(eqx.Module):
+    """GP with the range model as its mean: y(p) = T(|p - a| + b) + f(p), f ~ GP(0, Matern + noise).
+
+    Attributes:
+        anchor: (3,) anchor position a [m] (in the frame of the inputs). bias: range bias b [m].
+        hyper: kernel and noise hyperparameters (log space).
+    """
+
+    anchor: Float[Array, ...]
+    bias: Float[Array, ...]
+    hyper: Hyper
+
+
+def _cone(x, anchor):
+    d2 = jnp.sum((x - anchor) ** 2, axis=-1)
+    safe = jnp.where(d2 > 0, d2, 1.0)
+    return jnp.where(d2 > 0, jnp.sqrt(safe), 0.0)
+
+
+def mean_model_nlml(
+    theta: MeanModel,
+    x: Float[Array, "n 3"],
+    r: Float[Array, " n"],
+    mask: Bool[Array, " n"],
+    nu: float = 1.5,
+    jitter: float = 1e-6,
+    target: str = "range",
+) -> Float[Array, ""]:
+    """-log p(r | x, theta) of the GP with the parametric mean T(|p - a| + b) (T = `to_target`).
+
+    Args:
+        theta: mean parameters and hyperparameters. x: (n, 3) tag positions [m]. r: (n,) ranges [m].
+        mask: (n,) valid entries. nu: Matern smoothness (static). jitter: relative diagonal jitter.
+        target: `range` or `inv-log` (the GP models T(r)).
+    """
+    m = to_target(_cone(x, theta.anchor) + theta.bias, target)
+    y = jnp.where(mask, to_target(jnp.where(mask, r, 1.0), target) - m, 0.0)
+    return neg_log_marginal_likelihood(theta.hyper, x, y, mask, nu, jitter)
+
+
+def fit_mean_model(x, r, mask, init: MeanModel, nu=1.5, jitter=1e-6, max_steps=200, target="range"):
+    """Maximise the marginal likelihood over anchor, bias and log hyperparameters (optx BFGS).
+
+    Returns:
+        (fitted MeanModel, covariance (3, 3) of the anchor from the inverse Hessian of the NLML).
+    """
+    n = jnp.maximum(jnp.sum(mask), 1)
+
+    def loss(th, _):
+        return mean_model_nlml(th, x, r, mask, nu, jitter, target) / n
+
+    sol = optx.minimise(loss, optx.BFGS(rtol=1e-7, atol=1e-7), init, max_steps=max_steps, throw=False)
+    ok = jnp.isfinite(loss(sol.value, None))
+    th = jax.tree.map(lambda a, b: jnp.where(ok, a, b), sol.value, init)
+    flat, unravel = jax.flatten_util.ravel_pytree(th)
+    hess = jax.hessian(lambda v: mean_model_nlml(unravel(v), x, r, mask, nu, jitter, target))(flat)
+    hess = 0.5 * (hess + hess.T)
+    w, v = jnp.linalg.eigh(hess)
+    # A saddle or flat direction (not a minimum) gets a large, not a negative, variance.
+    w = jnp.maximum(jnp.abs(w), 1e-10 * jnp.max(jnp.abs(w)))
+    cov = (v / w) @ v.T
+    return th, cov[:3, :3]
+
+
+@eqx.filter_jit
+def _calibrate_mean(x, r, mask, init_anchor, init_bias, p: GPParams):
+    def one(x, r, m, a0, b0):
+        w = m.astype(x.dtype)
+        n = jnp.maximum(jnp.sum(w), 1.0)
+        origin = jnp.sum(x * w[:, None], axis=0) / n
+        xc = (x - origin) * w[:, None]
+        a0 = a0 - origin
+        y = to_target(jnp.where(m, r, 1.0), p.target)
+        res = jnp.where(m, y - to_target(_cone(xc, a0) + b0, p.target), 0.0)
+        var_y = jnp.maximum(jnp.sum(res**2) / n, 1e-6)
+        ext = jnp.max(jnp.where(m[:, None], jnp.abs(xc), 0.0))
+        init = MeanModel(
+            a0,
+            b0,
+            Hyper(jnp.log(jnp.maximum(0.1 * ext, 1e-2)), jnp.log(0.5 * var_y), jnp.log(0.5 * var_y)),
+        )
+        th, cov = fit_mean_model(xc, r, m, init, p.nu, p.jitter, p.max_steps, p.target)
+        return th.anchor + origin, cov, th.hyper, th.bias
+
+    return jax.lax.map(lambda a: one(*a), (x, r, mask, init_anchor, init_bias))
+
+
 # ------------------------------------------------------------------------------------ calibrate
 
 
@@ -424,6 +522,8 @@ def calibrate(dataset, params=None, config=None) -> Result:
     p = with_overrides(GPParams(), params)
     if p.target not in ("range", "inv-log"):
         raise JaxcalError(f"parameter target: expected range or inv-log, got {p.target!r}")
+    if p.mean not in ("constant", "anchor"):
+        raise JaxcalError(f"parameter mean: expected constant or anchor, got {p.mean!r}")
     matern(jnp.zeros(1), 1.0, 1.0, p.nu)  # validates nu
     if p.grid < 2 or p.top_k < 1 or p.top_k > p.grid**2 or not 0.0 < p.shrink < 1.0 or p.tol_m <= 0:
         raise JaxcalError(
@@ -457,6 +557,8 @@ def calibrate(dataset, params=None, config=None) -> Result:
             for a in range(a_n)
         ]
     )
+    if p.mean == "anchor":
+        return _calibrate_anchor_mean(dataset, p, groups, info, n, planar)
     grid_z = 1 if planar.all() else p.grid
     est = cov = hyp = None
     half_prev = np.full((a_n, 3), np.inf)
@@ -504,6 +606,48 @@ def calibrate(dataset, params=None, config=None) -> Result:
         info,
         n_rounds=n_rounds,
         planar=planar.tolist(),
+        length_m=np.exp(np.asarray(hyp.log_length)).tolist(),
+        signal_var=np.exp(np.asarray(hyp.log_variance)).tolist(),
+        noise_var=np.exp(np.asarray(hyp.log_noise)).tolist(),
+    )
+    kept = AnchorRanges(groups.position, groups.range, groups.mask)
+    return finish(dataset, "gp", p, kept, est, cov, info)
+
+
+def _calibrate_anchor_mean(dataset, p: GPParams, groups, info, n: int, planar) -> Result:
+    """`mean=anchor`: `nls` on all ranges for the start, then the mean-model GP on a stratified subsample."""
+    from jaxcal.trajectory import nls
+    from jaxcal.trajectory.poses import AnchorRanges
+
+    shared = {k: getattr(p, k) for k in ("min_ranges", "planar_tol_m", "planar_ratio", "side")}
+    a0, _, b0 = nls._solve_all(
+        groups.position, groups.range, groups.mask, with_overrides(nls.NLSParams(), shared)
+    )
+    pos = np.asarray(groups.position)
+    rng_m = np.asarray(groups.range)
+    mask = np.asarray(groups.mask)
+    a_n = pos.shape[0]
+    x = np.zeros((a_n, n, 3))
+    r = np.ones((a_n, n))
+    m = np.zeros((a_n, n), dtype=bool)
+    a0 = np.array(a0, dtype=float)
+    b0 = np.array(b0, dtype=float)
+    for a in range(a_n):
+        valid = np.nonzero(mask[a])[0]
+        if valid.size == 0:
+            continue
+        sel = valid[stratified_subsample(rng_m[a, valid], n, p.n_bins, p.seed + a)]
+        x[a, : sel.size], r[a, : sel.size], m[a, : sel.size] = pos[a, sel], rng_m[a, sel], True
+        if not np.isfinite(a0[a]).all():
+            a0[a] = pos[a, sel].mean(axis=0)
+            b0[a] = 0.0
+    est, cov, hyp, bias = _calibrate_mean(
+        jnp.asarray(x), jnp.asarray(r), jnp.asarray(m), jnp.asarray(a0), jnp.asarray(b0), p
+    )
+    info = dict(
+        info,
+        planar=planar.tolist(),
+        bias_m=np.asarray(bias).tolist(),
         length_m=np.exp(np.asarray(hyp.log_length)).tolist(),
         signal_var=np.exp(np.asarray(hyp.log_variance)).tolist(),
         noise_var=np.exp(np.asarray(hyp.log_noise)).tolist(),
