@@ -43,6 +43,7 @@ it can add a `likelihood` option behind `grid.node_loglik`'s signature.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -53,10 +54,21 @@ from jaxtyping import Array, Bool, Float
 
 from jaxcal.data import MeshDataset, Result
 from jaxcal.errors import JaxcalError
+from jaxcal.mesh import fast as F
 from jaxcal.mesh import grid as G
 from jaxcal.params import as_dict, with_overrides
 
-__all__ = ["PGPParams", "PGPInfo", "run_pgp", "calibrate", "symmetric_ranges"]
+__all__ = [
+    "PGPParams",
+    "PGPInfo",
+    "PGPStream",
+    "run_pgp",
+    "calibrate",
+    "start",
+    "advance",
+    "stream_posterior",
+    "symmetric_ranges",
+]
 
 
 class PGPParams(eqx.Module):
@@ -89,9 +101,15 @@ class PGPParams(eqx.Module):
             lets one outlier ring outvote the others (simulated torgau conf1, 200 epochs: RMSE 2.97
             m at
             0 and 2.58 m at sigma_r = 1, 0.29 m at p_out = 0.05).
-        likelihood: "sparse" (skip neighbours without a range and hypotheses outside `tau`; loops)
-        or
-            "dense" (evaluate every pair and hypothesis, vmapped, then mask): same answer.
+        likelihood: how eq. (11) is evaluated (same answer, different cost):
+            "window" (default; the fast path of `fast.py`): once every node is localised, every
+            node's epoch runs on a W x W window of cells around its probability mass, with a proven
+            bound on the mass outside (below e^-30, else that epoch runs on the full grid);
+            "direct" (the reference: every cell, neighbours without a range skipped in a loop;
+            "sparse" is an alias); "dense" (every pair and hypothesis vmapped, then masked).
+        window_m: side of the window of `likelihood="window"` [m] (8 m: covers the 32 most
+            probable cells plus the tail of the motion kernel at sigma_v = 0.25 m; a window that
+            is too small for the data only makes more epochs fall back to the full grid).
     """
 
     cell_m: float = 0.5
@@ -111,7 +129,11 @@ class PGPParams(eqx.Module):
     min_refs: int = 3
     a2_all: bool = False
     p_out: float = 0.05
-    likelihood: str = "sparse"
+    likelihood: str = "window"
+    window_m: float = 8.0
+
+
+LIKELIHOODS = ("window", "direct", "sparse", "dense")
 
 
 def _validate(p: PGPParams) -> None:
@@ -119,7 +141,7 @@ def _validate(p: PGPParams) -> None:
         if not ok:
             raise JaxcalError(f"parameter {msg}")
 
-    pos = ("cell_m", "extent_m", "sigma_r", "sigma_v", "r_est")
+    pos = ("cell_m", "extent_m", "sigma_r", "sigma_v", "r_est", "window_m")
     for k in pos:
         need(
             math.isfinite(getattr(p, k)) and getattr(p, k) > 0,
@@ -136,7 +158,10 @@ def _validate(p: PGPParams) -> None:
         p.smoothing in ("none", "ema", "median-ema"),
         f"smoothing: one of none, ema, median-ema; got {p.smoothing!r}",
     )
-    need(p.likelihood in ("sparse", "dense"), f"likelihood: sparse or dense; got {p.likelihood!r}")
+    need(
+        p.likelihood in LIKELIHOODS,
+        f"likelihood: one of {', '.join(LIKELIHOODS)}; got {p.likelihood!r}",
+    )
     need(
         p.update_order in ("jacobi", "gauss-seidel"),
         f"update_order: jacobi or gauss-seidel; got {p.update_order!r}",
@@ -158,10 +183,12 @@ class FilterConfig(eqx.Module):
     median_window: int = eqx.field(static=True)
     mode: str = eqx.field(static=True)  # "pgp" (hypotheses, eq. 10-11) or "parametric" (eq. 9)
     n_snap: int = eqx.field(static=True)
-    likelihood: str = eqx.field(static=True, default="sparse")
+    likelihood: str = eqx.field(static=True, default="direct")
     # "hard": eq. (10) as written; "soft": `G.soft_hypotheses` with `FilterParams.tau_temp` (tuning)
     select: str = eqx.field(static=True, default="hard")
     remat: bool = eqx.field(static=True, default=False)  # jax.checkpoint the epoch (gradients)
+    # W of the windowed epochs (`fast.py`); 0: every epoch on the full grid
+    window: int = eqx.field(static=True, default=0)
 
 
 class FilterParams(eqx.Module):
@@ -197,6 +224,15 @@ class FilterState(eqx.Module):
     started: Bool[Array, " nodes"]
     buf: Float[Array, "nodes window 2"]
     snaps: Float[Array, "snaps nodes nx ny"]
+    # windowed representation (`fast.py`): while `windowed`, the posteriors are `win` placed at
+    # `org` (and `logpost` is stale); `bound`: log of the largest value outside each window
+    win: Float[Array, "nodes w w"]
+    org: Array  # (nodes, 2) int32 window origins
+    bound: Float[Array, " nodes"]
+    windowed: Bool[Array, ""]
+    # a1 (filter node 1) lives on one grid row (eq. 5): while windowed, its posterior is this whole
+    # row (n cells, exact, no bound needed; its 1-D tail is too wide for a square window)
+    row: Float[Array, " n"]
 
 
 class FilterOut(eqx.Module):
@@ -209,6 +245,7 @@ class FilterOut(eqx.Module):
     # eq. (11) (without the Gaussian's constant); 0 for a node without factors this epoch
     log_evidence: Float[Array, " nodes"]
     n_factors: Float[Array, " nodes"]  # number of range factors in eq. (11) this epoch
+    windowed: Bool[Array, ""]  # whether this epoch ran on the windows (`likelihood="window"`)
 
 
 class PGPInfo(eqx.Module):
@@ -251,21 +288,24 @@ def _localised(heard: Bool[Array, "n n"], need: Float[Array, " n"]) -> Bool[Arra
 def _hypotheses(
     cfg: FilterConfig, prm: FilterParams, logp: Float[Array, "n c"], cells: Float[Array, "c 2"]
 ):
-    """(N, H, 2), (N, H), (N,) hypotheses of all nodes: eq. (10), or eq. (9) for parametric."""
+    """(N, H, 2), (N, H), (N,) hypotheses of all nodes: eq. (10), or eq. (9) for parametric.
+
+    `cells` is (C, 2) shared by all nodes or (N, C, 2) per node (windows)."""
+    ca = 0 if cells.ndim == 3 else None
     if cfg.mode == "pgp" and cfg.select == "soft":
-        pos, lw = jax.vmap(G.soft_hypotheses, in_axes=(0, None, None, None, None))(
+        pos, lw = jax.vmap(G.soft_hypotheses, in_axes=(0, ca, None, None, None))(
             logp, cells, cfg.n_hyp, prm.tau, prm.tau_temp
         )
         sig = jnp.broadcast_to(prm.sigma_r, logp.shape[:1])
         return pos, lw, sig
     if cfg.mode == "pgp":
-        pos, lw = jax.vmap(G.top_hypotheses, in_axes=(0, None, None, None))(
+        pos, lw = jax.vmap(G.top_hypotheses, in_axes=(0, ca, None, None))(
             logp, cells, cfg.n_hyp, prm.tau
         )
         sig = jnp.broadcast_to(prm.sigma_r, logp.shape[:1])
         return pos, lw, sig
-    est = jax.vmap(G.window_estimate, in_axes=(0, None, None))(logp, cells, prm.r_est)
-    _, cov = jax.vmap(G.mean_cov, in_axes=(0, None))(logp, cells)
+    est = jax.vmap(G.window_estimate, in_axes=(0, ca, None))(logp, cells, prm.r_est)
+    _, cov = jax.vmap(G.mean_cov, in_axes=(0, ca))(logp, cells)
     tr = jnp.maximum(jnp.trace(cov, axis1=1, axis2=2), 0.0)
     # eq. (9): the receiver's own uncertainty is its grid, so only the neighbour's trace is added.
     sig = prm.sigma_r + jnp.sqrt(tr)
@@ -280,7 +320,7 @@ def _node_update(cfg, prm, cells, logp_i, mask_i, loc_i, hyps, z_i, use_i, step_
         lambda lp: lp,
         logp_i,
     )
-    lik = G.node_loglik_sparse if cfg.likelihood == "sparse" else G.node_loglik
+    lik = G.node_loglik if cfg.likelihood == "dense" else G.node_loglik_sparse
     ll = lik(cells, hyps[0], hyps[1], hyps[2], z_i, use_i, prm.p_out)
     post = jnp.where(mask_i, prior + ll, -jnp.inf)
     lse = jax.nn.logsumexp(post)
@@ -303,21 +343,106 @@ def _smooth(cfg, prm, st: FilterState, raw, loc):
     return smooth, smooth, started, buf
 
 
-def _filter(
-    cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, logpost0: Float[Array, "n nx ny"]
-):
-    """The recursive filter: `lax.scan` over epochs -> (final FilterState, per-epoch FilterOut)."""
+def _window_epoch(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st: FilterState, z,
+                  step_m, use, log_cells):
+    """One jacobi epoch on the windows (`fast.py`): every node localised, posteriors in `st.win`.
+
+    a1 runs on its whole row instead (`FilterState.row`).
+
+    Returns (win, org, bound, ev, raw, row, ok): `ok` says the new mass outside every window is
+    below `fast.WINDOW_LOG_TOL` (else the caller runs the epoch on the full grid instead)."""
+    grid, w = cfg.grid, cfg.window
+    n = st.win.shape[0]
+    dtype = st.win.dtype
+    win = st.win.reshape(n, w * w)
+    cells_of = jax.vmap(lambda o: F.window_cells(o, grid, w, dtype))
+    wc_old = cells_of(st.org)
+    hyps = _hypotheses(cfg, prm, win, wc_old)
+    row_cells = jnp.stack([grid.axis(dtype), jnp.zeros((grid.n_side,), dtype)], axis=-1)
+    h1 = _hypotheses(cfg, prm, st.row[None], row_cells)
+    hyps = tuple(h.at[1].set(h1_[0]) for h, h1_ in zip(hyps, h1, strict=True))
+
+    def node(win_i, org_i, wc_i, mask_i, z_i, use_i):
+        vals, idx = jax.lax.top_k(win_i, cfg.top_k)
+        src_idx = org_i[None, :] + jnp.stack([idx // w, idx % w], axis=-1)
+        new_org = F.window_origin(src_idx[0, 0] * grid.n_side + src_idx[0, 1], grid.n_side, w)
+        cells = F.window_cells(new_org, grid, w, dtype)
+        prior = F.predict_window(vals, wc_i[idx], cells, step_m, prm.sigma_v)
+        ll = G.node_loglik(cells, hyps[0], hyps[1], hyps[2], z_i, use_i, prm.p_out)
+        m = F.window_mask(mask_i, new_org, w)
+        post = jnp.where(m, prior + ll, -jnp.inf)
+        lse = jax.nn.logsumexp(post)
+        ev = lse - jax.nn.logsumexp(jnp.where(m, prior, -jnp.inf))
+        pb = F.outside_bound(vals, src_idx, new_org, grid.n_side, w, grid.cell_m, step_m,
+                             prm.sigma_v)
+        post = post - lse
+        raw = G.window_estimate(post, cells, prm.r_est)
+        return post.reshape(w, w), new_org, pb - lse, ev, raw
+
+    win, org, bound, ev, raw = jax.vmap(node)(win, st.org, wc_old, inp.mask, z, use)
+    # a1 on its row: eq. (7)-(8) from its top_k cells, eq. (11) with a0's hypothesis
+    vals, idx = jax.lax.top_k(st.row, cfg.top_k)
+    d = G.safe_norm(row_cells[None, :, :] - row_cells[idx][:, None, :])
+    prior = jax.nn.logsumexp(vals[:, None] - 0.5 * jnp.square((d - step_m) / prm.sigma_v), axis=0)
+    ll = G.node_loglik(row_cells, hyps[0], hyps[1], hyps[2], z[1], use[1], prm.p_out)
+    m = inp.mask[1, :, grid.n_half]
+    post = jnp.where(m, prior + ll, -jnp.inf)
+    lse = jax.nn.logsumexp(post)
+    ev = ev.at[1].set(lse - jax.nn.logsumexp(jnp.where(m, prior, -jnp.inf)))
+    row = post - lse
+    raw = raw.at[1].set(G.window_estimate(row, row_cells, prm.r_est))
+    bound = bound.at[1].set(-jnp.inf)
+    ok = jnp.all(bound + log_cells < F.WINDOW_LOG_TOL)
+    return win, org, bound, ev, raw, row, ok
+
+
+def _full_logpost(cfg: FilterConfig, st: FilterState) -> Float[Array, "n nx ny"]:
+    """The state's posteriors on the full grid (windows placed on `-inf` when windowed)."""
+    if not cfg.window:
+        return st.logpost
+    full = jax.vmap(F.scatter_window, in_axes=(0, 0, None))(st.win, st.org, cfg.grid.n_side)
+    c = cfg.grid.n_half
+    full = full.at[1].set(jnp.full_like(full[1], -jnp.inf).at[:, c].set(st.row))
+    return jnp.where(st.windowed, full, st.logpost)
+
+
+def init_state(cfg: FilterConfig, logpost0: Float[Array, "n nx ny"]) -> FilterState:
+    """The filter's state before the first epoch (uniform posteriors over each node's region)."""
     n = logpost0.shape[0]
-    cells = cfg.grid.cells(logpost0.dtype)
+    w = cfg.window or 1
+    dtype = logpost0.dtype
+    nan2 = jnp.full((n, 2), jnp.nan, dtype)
+    return FilterState(
+        logpost=logpost0,
+        heard=jnp.zeros((n, n), bool),
+        smooth=nan2,
+        started=jnp.zeros((n,), bool),
+        buf=jnp.full((n, cfg.median_window, 2), jnp.nan, dtype),
+        snaps=jnp.full((cfg.n_snap,) + logpost0.shape, -jnp.inf, dtype),
+        win=jnp.zeros((n, w, w), dtype),
+        org=jnp.zeros((n, 2), jnp.int32),
+        bound=jnp.full((n,), jnp.inf, dtype),
+        windowed=jnp.asarray(False),
+        row=jnp.full((cfg.grid.n_side,), -jnp.inf, dtype),
+    )
+
+
+def _scan(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st0: FilterState, k0=0):
+    """`lax.scan` of the epochs `inp.z` from state `st0` (`k0`: index of the first epoch, for
+    snapshots) -> (FilterState, FilterOut). The state may be windowed (see `_full_logpost`)."""
+    n = st0.logpost.shape[0]
+    dtype = st0.logpost.dtype
+    cells = cfg.grid.cells(dtype)
     c = cells.shape[0]
     mask = inp.mask.reshape(n, c)
-    nan2 = jnp.full((n, 2), jnp.nan, logpost0.dtype)
+    nan2 = jnp.full((n, 2), jnp.nan, dtype)
+    windowed_mode = cfg.window > 0 and cfg.update_order == "jacobi"
+    # log of each node's number of allowed cells: bounds the mass outside its window
+    log_cells = jnp.log(jnp.maximum(jnp.sum(mask, axis=1), 1).astype(dtype))
 
     def upd(lp, loc, hyps, z, use, step_m):
         args = (lp, mask, loc, z, use)
-        if (
-            cfg.likelihood == "sparse"
-        ):  # lax.map: a vmapped cond would evaluate the skipped work too
+        if cfg.likelihood != "dense":  # lax.map: a vmapped cond would evaluate the skipped work too
             return jax.lax.map(
                 lambda a: _node_update(cfg, prm, cells, a[0], a[1], a[2], hyps, a[3], a[4], step_m),
                 args,
@@ -326,10 +451,9 @@ def _filter(
             lambda *a: _node_update(cfg, prm, cells, a[0], a[1], a[2], hyps, a[3], a[4], step_m)
         )(*args)
 
-    def epoch(st: FilterState, x):
-        z, dt, k = x
-        step_m = prm.v * dt
-        lp = st.logpost.reshape(n, c)
+    def full_epoch(st: FilterState, z, step_m):
+        """The direct evaluation on every cell; re-centres the windows when there are any."""
+        lp = _full_logpost(cfg, st).reshape(n, c)
         heard = st.heard
         if cfg.update_order == "jacobi":
             loc = _localised(heard, inp.need)
@@ -337,7 +461,7 @@ def _filter(
             hyps = _hypotheses(cfg, prm, lp, cells)
             lp, ev = upd(lp, loc, hyps, z, use, step_m)
             heard = heard | use
-            nf = jnp.sum(use, axis=1).astype(lp.dtype)
+            nf = jnp.sum(use, axis=1).astype(dtype)
         else:
             hyps = _hypotheses(cfg, prm, lp, cells)
 
@@ -352,57 +476,89 @@ def _filter(
                 heard = heard.at[i].set(heard[i] | use_i)
                 h1 = _hypotheses(cfg, prm, new[None], cells)
                 hyps = tuple(h.at[i].set(h1_[0]) for h, h1_ in zip(hyps, h1, strict=True))
-                return (lp, heard, hyps), (ev_i, jnp.sum(use_i).astype(lp.dtype))
+                return (lp, heard, hyps), (ev_i, jnp.sum(use_i).astype(dtype))
 
             (lp, heard, _), (ev, nf) = jax.lax.scan(one, (lp, heard, hyps), jnp.arange(n))
-        loc = _localised(heard, inp.need)
         raw = jax.vmap(G.window_estimate, in_axes=(0, None, None))(lp, cells, prm.r_est)
+        logpost = lp.reshape(st.logpost.shape)
+        if windowed_mode:
+            win, org, bound = jax.vmap(F.extract_window, in_axes=(0, None))(logpost, cfg.window)
+            row = logpost[1, :, cfg.grid.n_half]
+            bound = bound.at[1].set(-jnp.inf)  # a1 is kept as its whole row
+        else:
+            win, org, bound, row = st.win, st.org, st.bound, st.row
+        return logpost, heard, ev, nf, raw, win, org, bound, row
+
+    def epoch(st: FilterState, x):
+        z, dt, k = x
+        step_m = prm.v * dt
+        if windowed_mode:
+            loc0 = _localised(st.heard, inp.need)
+            use0 = inp.allowed & jnp.isfinite(z) & loc0[None, :]
+            pre = jnp.all(loc0) & jnp.all(st.bound + log_cells < F.WINDOW_LOG_TOL)
+            skip = (st.win, st.org, st.bound, jnp.zeros((n,), dtype), nan2, st.row,
+                    jnp.asarray(False))
+            res = jax.lax.cond(
+                pre,
+                lambda: _window_epoch(cfg, prm, inp, st, z, step_m, use0, log_cells),
+                lambda: skip,
+            )
+            ok = pre & res[6]
+
+            def take_window():
+                nf = jnp.sum(use0, axis=1).astype(dtype)
+                return (st.logpost, st.heard | use0, res[3], nf, res[4], res[0], res[1], res[2],
+                        res[5])
+
+            logpost, heard, ev, nf, raw, win, org, bound, row = jax.lax.cond(
+                ok, take_window, lambda: full_epoch(st, z, step_m)
+            )
+            windowed = ok
+        else:
+            logpost, heard, ev, nf, raw, win, org, bound, row = full_epoch(st, z, step_m)
+            windowed = st.windowed
+        loc = _localised(heard, inp.need)
         raw = jnp.where(loc[:, None], raw, nan2)
         est, smooth, started, buf = _smooth(cfg, prm, st, raw, loc)
         est = jnp.where(loc[:, None], est, nan2)
-        logpost = lp.reshape(st.logpost.shape)
-        snaps = st.snaps
+        new = FilterState(
+            logpost, heard, smooth, started, buf, st.snaps, win, org, bound, windowed, row
+        )
         if cfg.n_snap:
             hit = inp.snap_at == k
-            snaps = jnp.where(hit[:, None, None, None], logpost[None], snaps)
-        new = FilterState(logpost, heard, smooth, started, buf, snaps)
-        return new, FilterOut(est, raw, jax.nn.logsumexp(lp, axis=1), ev, nf)
+            snaps = jax.lax.cond(
+                jnp.any(hit),
+                lambda: jnp.where(hit[:, None, None, None], _full_logpost(cfg, new)[None], st.snaps),
+                lambda: st.snaps,
+            )
+            new = dataclasses.replace(new, snaps=snaps)
+        if windowed_mode:
+            lmw = jax.nn.logsumexp(win.reshape(n, -1), axis=1).at[1].set(jax.nn.logsumexp(row))
+            lm = jnp.where(windowed, lmw, jax.nn.logsumexp(logpost.reshape(n, -1), axis=1))
+        else:
+            lm = jax.nn.logsumexp(logpost.reshape(n, -1), axis=1)
+        return new, FilterOut(est, raw, lm, ev, nf, windowed)
 
-    st0 = FilterState(
-        logpost=logpost0,
-        heard=jnp.zeros((n, n), bool),
-        smooth=nan2,
-        started=jnp.zeros((n,), bool),
-        buf=jnp.full((n, cfg.median_window, 2), jnp.nan, logpost0.dtype),
-        snaps=jnp.full((cfg.n_snap,) + logpost0.shape, -jnp.inf, logpost0.dtype),
-    )
     k = inp.z.shape[0]
     body = jax.checkpoint(epoch) if cfg.remat else epoch
-    return jax.lax.scan(body, st0, (inp.z, inp.dt, jnp.arange(k)))
+    return jax.lax.scan(body, st0, (inp.z, inp.dt, k0 + jnp.arange(k)))
+
+
+def _filter(
+    cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, logpost0: Float[Array, "n nx ny"]
+):
+    """The recursive filter: `lax.scan` over epochs -> (final FilterState, per-epoch FilterOut).
+
+    The final state's `logpost` holds the full-grid posteriors (windows placed on the grid)."""
+    st, out = _scan(cfg, prm, inp, init_state(cfg, logpost0))
+    return dataclasses.replace(st, logpost=_full_logpost(cfg, st), windowed=jnp.asarray(False)), out
 
 
 run_filter = eqx.filter_jit(_filter)
 
 
-def prepare(
-    dataset: MeshDataset,
-    params: PGPParams,
-    config: str | None,
-    mode: str = "pgp",
-    snapshot_epochs=(),
-):
-    """Host-side setup: node order, grid, masks and arrays for `_filter`.
-
-    Returns:
-        (cfg, prm, inp, logpost0, order) where `order[k]` is the dataset index of filter node k.
-    """
-    _validate(params)
-    a0, a1, a2 = dataset.config(config)
-    n = dataset.n_nodes
-    order = np.array([a0, a1, a2] + [i for i in range(n) if i not in (a0, a1, a2)])
-    z = symmetric_ranges(np.asarray(dataset.range, dtype=np.float64))[:, order][:, :, order]
-    radius = G.extent_radius(z, 0, params.margin_m, params.extent_m)
-    grid = G.make_grid(radius, params.cell_m)
+def _setup(params: PGPParams, grid: G.Grid, n: int, mode: str, snaps: np.ndarray, z, dt):
+    """(cfg, prm, inp, logpost0) for `n` nodes in filter order on `grid` (host side)."""
     mask = G.region_masks(grid, n)
     allowed = np.ones((n, n), dtype=bool)
     np.fill_diagonal(allowed, False)
@@ -414,12 +570,10 @@ def prepare(
         allowed[2, :2] = True
     need = np.full(n, float(params.min_refs))
     need[:3] = (0.0, 1.0, 2.0)
-    t = np.asarray(dataset.time, dtype=np.float64)
-    dt = np.diff(t, prepend=t[:1]) if t.size else t
-    snaps = np.asarray(sorted({int(s) for s in snapshot_epochs}), dtype=np.float64)
-    if snaps.size and (snaps.min() < 0 or snaps.max() >= max(dataset.n_epochs, 1)):
-        raise JaxcalError(f"snapshot epochs must lie in [0, {dataset.n_epochs})")
     ftype = jnp.result_type(float)
+    window = 0
+    if params.likelihood == "window" and params.update_order == "jacobi":
+        window = F.window_side(params.window_m, grid)
     cfg = FilterConfig(
         grid=grid,
         top_k=min(params.top_k, grid.n_cells),
@@ -429,7 +583,8 @@ def prepare(
         median_window=params.median_window,
         mode=mode,
         n_snap=int(snaps.size),
-        likelihood=params.likelihood,
+        likelihood="direct" if params.likelihood in ("window", "sparse") else params.likelihood,
+        window=window,
     )
     prm = FilterParams(
         *(
@@ -447,7 +602,135 @@ def prepare(
     )
     logpost0 = jnp.where(inp.mask, 0.0, -jnp.inf).astype(ftype)
     logpost0 = logpost0 - jax.nn.logsumexp(logpost0, axis=(1, 2), keepdims=True)
+    return cfg, prm, inp, logpost0
+
+
+def _node_order(n: int, anchors) -> np.ndarray:
+    a0, a1, a2 = (int(a) for a in anchors)
+    if len({a0, a1, a2}) != 3 or min(a0, a1, a2) < 0 or max(a0, a1, a2) >= n:
+        raise JaxcalError(f"anchors must be three distinct node indices in [0, {n}), got {anchors}")
+    return np.array([a0, a1, a2] + [i for i in range(n) if i not in (a0, a1, a2)])
+
+
+def prepare(
+    dataset: MeshDataset,
+    params: PGPParams,
+    config: str | None,
+    mode: str = "pgp",
+    snapshot_epochs=(),
+):
+    """Host-side setup: node order, grid, masks and arrays for `_filter`.
+
+    Returns:
+        (cfg, prm, inp, logpost0, order) where `order[k]` is the dataset index of filter node k.
+    """
+    _validate(params)
+    n = dataset.n_nodes
+    order = _node_order(n, dataset.config(config))
+    z = symmetric_ranges(np.asarray(dataset.range, dtype=np.float64))[:, order][:, :, order]
+    radius = G.extent_radius(z, 0, params.margin_m, params.extent_m)
+    grid = G.make_grid(radius, params.cell_m)
+    t = np.asarray(dataset.time, dtype=np.float64)
+    dt = np.diff(t, prepend=t[:1]) if t.size else t
+    snaps = np.asarray(sorted({int(s) for s in snapshot_epochs}), dtype=np.float64)
+    if snaps.size and (snaps.min() < 0 or snaps.max() >= max(dataset.n_epochs, 1)):
+        raise JaxcalError(f"snapshot epochs must lie in [0, {dataset.n_epochs})")
+    cfg, prm, inp, logpost0 = _setup(params, grid, n, mode, snaps, z, dt)
     return cfg, prm, inp, logpost0, order
+
+
+class PGPStream(eqx.Module):
+    """A running filter fed chunk by chunk (`start`, `advance`): live calibration.
+
+    Attributes:
+        cfg, prm: static configuration and numeric parameters. inp: constant inputs (masks,
+            neighbour sets; its `z`, `dt` are unused). state: the filter state after `epochs`
+            epochs. order: `order[k]` is the dataset index of filter node k. epochs: epochs done.
+    """
+
+    cfg: FilterConfig
+    prm: FilterParams
+    inp: FilterInputs
+    state: FilterState
+    order: tuple[int, ...] = eqx.field(static=True)
+    epochs: int = eqx.field(static=True, default=0)
+
+
+def start(
+    n_nodes: int,
+    params: PGPParams | dict | None = None,
+    anchors=(0, 1, 2),
+    radius_m: float | None = None,
+    *,
+    mode: str = "pgp",
+) -> PGPStream:
+    """Start a filter for live use: no epochs yet.
+
+    Args:
+        n_nodes: N, the number of nodes (dataset order; ranges fed later are (k, N, N)).
+        params: a `PGPParams` or dict of overrides. anchors: (a0, a1, a2) node indices.
+        radius_m: half-width of the grid [m] (None: `params.extent_m`; `run_pgp` sizes it from the
+            ranges with `grid.extent_radius`, which needs the recording first).
+        mode: "pgp" or "parametric".
+
+    Returns:
+        a `PGPStream` to pass to `advance`.
+    """
+    if not isinstance(params, PGPParams):
+        params = with_overrides(PGPParams(), params)
+    _validate(params)
+    order = _node_order(int(n_nodes), anchors)
+    radius = params.extent_m if radius_m is None else float(radius_m)
+    if not (math.isfinite(radius) and radius > 0):
+        raise JaxcalError(f"radius_m must be a positive number, got {radius_m!r}")
+    grid = G.make_grid(radius, params.cell_m)
+    n = int(n_nodes)
+    cfg, prm, inp, lp0 = _setup(
+        params, grid, n, mode, np.zeros(0), np.zeros((0, n, n)), np.zeros(0)
+    )
+    return PGPStream(cfg, prm, inp, init_state(cfg, lp0), tuple(int(i) for i in order), 0)
+
+
+_scan_jit = eqx.filter_jit(_scan)
+
+
+def advance(
+    stream: PGPStream, ranges: np.ndarray, dt: np.ndarray
+) -> tuple[PGPStream, np.ndarray]:
+    """Feed the next epochs to a running filter.
+
+    Advancing in chunks gives the same estimates as one run over all epochs (each chunk length
+    compiles once: feed chunks of a fixed size for live use).
+
+    Args:
+        stream: from `start` or a previous `advance`.
+        ranges: (k, N, N) ranges [m] of the next k epochs, dataset node order, NaN missing.
+        dt: (k,) time step of each epoch to the one before [s] (0 for the very first).
+
+    Returns:
+        (stream, estimates): the advanced stream and (k, N, 2) eq. (13)/(14) estimates [m] in the
+        configuration frame, dataset node order, NaN while a node is not localised.
+    """
+    r = np.asarray(ranges, dtype=np.float64)
+    d = np.asarray(dt, dtype=np.float64)
+    n = len(stream.order)
+    if r.ndim != 3 or r.shape[1:] != (n, n) or d.shape != r.shape[:1]:
+        raise JaxcalError(f"advance: need ranges (k, {n}, {n}) and dt (k,), got {r.shape}, {d.shape}")
+    order = np.asarray(stream.order)
+    z = symmetric_ranges(r)[:, order][:, :, order]
+    dtype = stream.state.logpost.dtype
+    inp = dataclasses.replace(stream.inp, z=jnp.asarray(z, dtype), dt=jnp.asarray(d, dtype))
+    k0 = jnp.asarray(stream.epochs, jnp.int32)  # an array: no recompilation per chunk
+    st, out = _scan_jit(stream.cfg, stream.prm, inp, stream.state, k0)
+    est = np.asarray(out.estimate, dtype=np.float64)[:, np.argsort(order)]
+    new = PGPStream(stream.cfg, stream.prm, stream.inp, st, stream.order, stream.epochs + r.shape[0])
+    return new, est
+
+
+def stream_posterior(stream: PGPStream) -> np.ndarray:
+    """(N, n, n) current posterior probabilities on the stream's grid, dataset node order."""
+    lp = np.asarray(_full_logpost(stream.cfg, stream.state), dtype=np.float64)
+    return np.exp(lp)[np.argsort(np.asarray(stream.order))]
 
 
 def run_pgp(

@@ -1,0 +1,168 @@
+"""Windowed kernels of the fast PGP path (`likelihood="window"`, the default; see `pgp.py`).
+
+Once every node is localised its posterior is concentrated. The motion update of eq. (7)-(8) only
+reads the `top_k` most probable cells, and every factor of eq. (11) is at most 1 (log <= 0), so the
+log posterior of a cell outside a square window of W x W cells around those cells is bounded by the
+Gaussian tail of the motion kernel:
+
+    log p(g) <= logsumexp_m [log p_m - relu(d_m - v dt)^2 / (2 sigma_v^2)] - log Z_window,
+
+with d_m the distance from source cell m to the nearest cell outside the window and Z_window the
+normaliser over the window. When that bound times the node's number of cells is below
+`WINDOW_LOG_TOL` (e^-30 ~ 1e-13 of the mass) for every node, and the previous epoch's
+bound was too, the epoch is evaluated on the windows only (W^2 cells per node instead of the whole
+grid) and equals the full evaluation up to rounding; otherwise the filter runs that epoch on the
+full grid (the direct evaluation) and re-centres the windows. No other approximation is made: the
+same top-k cells, hypotheses, factors, normalisation and estimate, on fewer cells.
+
+Window cells are indexed like the grid (`ix`-major), so ties in `lax.top_k` resolve as on the full
+grid. Everything here is for one node; `pgp.py` vmaps it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+from jaxcal.mesh import grid as G
+
+__all__ = [
+    "WINDOW_LOG_TOL",
+    "window_side",
+    "window_origin",
+    "window_cells",
+    "extract_window",
+    "scatter_window",
+    "predict_window",
+    "outside_bound",
+]
+
+# log of the largest total posterior mass that may lie outside a node's window in a windowed epoch
+WINDOW_LOG_TOL = -30.0
+
+
+def window_side(window_m: float, grid: G.Grid) -> int:
+    """Static window side W [cells] for a window of `window_m` metres; 0 when it would cover the
+    grid (the window path is then the full path)."""
+    w = int(math.ceil(window_m / grid.cell_m - 1e-9))
+    w = max(w, 3)
+    return 0 if w >= grid.n_side else w
+
+
+def window_origin(flat_idx: Int[Array, ""], n_side: int, w: int) -> Int[Array, " 2"]:
+    """(ix0, iy0) of the W x W window centred on cell `flat_idx` (grid flat index), clamped to the
+    grid."""
+    ix, iy = flat_idx // n_side, flat_idx % n_side
+    o = jnp.stack([ix, iy]) - w // 2
+    return jnp.clip(o, 0, n_side - w).astype(jnp.int32)
+
+
+def window_cells(org: Int[Array, " 2"], grid: G.Grid, w: int, dtype) -> Float[Array, "cells 2"]:
+    """(W^2, 2) centres [m] of the window cells, flat index `a * W + b` for grid cell
+    `(ix0 + a, iy0 + b)`."""
+    a = jnp.arange(w, dtype=dtype)
+    ax = (org[0].astype(dtype) + a - grid.n_half) * grid.cell_m
+    ay = (org[1].astype(dtype) + a - grid.n_half) * grid.cell_m
+    gx, gy = jnp.meshgrid(ax, ay, indexing="ij")
+    return jnp.stack([gx.ravel(), gy.ravel()], axis=-1)
+
+
+def extract_window(
+    logp: Float[Array, "nx ny"], w: int
+) -> tuple[Float[Array, "w w"], Int[Array, " 2"], Float[Array, ""]]:
+    """Window of one node's full-grid log posterior around its MLE cell.
+
+    Returns:
+        (W, W) window log values (not renormalised), (2,) origin, and the largest log value outside
+        the window (`-inf` when there is none).
+    """
+    n = logp.shape[0]
+    org = window_origin(jnp.argmax(logp.ravel()), n, w)
+    win = jax.lax.dynamic_slice(logp, (org[0], org[1]), (w, w))
+    i = jnp.arange(n)
+    inx = (i >= org[0]) & (i < org[0] + w)
+    iny = (i >= org[1]) & (i < org[1] + w)
+    out = jnp.max(jnp.where(inx[:, None] & iny[None, :], -jnp.inf, logp))
+    return win, org, out
+
+
+def scatter_window(win: Float[Array, "w w"], org: Int[Array, " 2"], n_side: int) -> Float[Array, "n n"]:
+    """Full-grid log posterior with the window's values and `-inf` elsewhere."""
+    full = jnp.full((n_side, n_side), -jnp.inf, win.dtype)
+    return jax.lax.dynamic_update_slice(full, win, (org[0], org[1]))
+
+
+def predict_window(
+    vals: Float[Array, " k"],
+    src: Float[Array, "k 2"],
+    cells: Float[Array, "cells 2"],
+    step_m: Float[Array, ""],
+    sigma_v: Float[Array, ""],
+) -> Float[Array, " cells"]:
+    """Motion update eq. (7)-(8) from K sources (log weights `vals`, positions `src`) onto the
+    square window `cells` (ix-major): the same arithmetic as `grid.predict_static` (v dt = 0,
+    separable) or `grid.predict_direct` (any v dt), with targets other than the sources' grid."""
+    n = int(round(math.sqrt(cells.shape[0])))
+
+    def static():
+        ax = cells[::n, 0]
+        ay = cells[:n, 1]
+        bx = -0.5 * jnp.square((ax[:, None] - src[None, :, 0]) / sigma_v)
+        by = -0.5 * jnp.square((ay[:, None] - src[None, :, 1]) / sigma_v)
+        vmax = jnp.max(vals)
+        wts = jnp.where(jnp.isfinite(vals), jnp.exp(vals - vmax), 0.0)
+        mx = jnp.max(bx, axis=1)
+        my = jnp.max(by, axis=1)
+        s = (jnp.exp(bx - mx[:, None]) * wts[None, :]) @ jnp.exp(by - my[:, None]).T
+        tiny = jnp.finfo(s.dtype).tiny
+        return (jnp.log(jnp.maximum(s, tiny)) + vmax + mx[:, None] + my[None, :]).reshape(-1)
+
+    def direct():
+        d = G.safe_norm(
+            jnp.stack(
+                [cells[None, :, 0] - src[:, 0, None], cells[None, :, 1] - src[:, 1, None]], axis=-1
+            )
+        )
+        logt = -0.5 * jnp.square((d - step_m) / sigma_v)
+        return jax.nn.logsumexp(vals[:, None] + logt, axis=0)
+
+    return jax.lax.cond(step_m == 0, static, direct)
+
+
+def outside_bound(
+    vals: Float[Array, " k"],
+    src_idx: Int[Array, "k 2"],
+    org: Int[Array, " 2"],
+    n_side: int,
+    w: int,
+    cell_m: float,
+    step_m: Float[Array, ""],
+    sigma_v: Float[Array, ""],
+) -> Float[Array, ""]:
+    """Upper bound on the (unnormalised) log prior of eq. (7)-(8) at any cell outside the window.
+
+    Args:
+        vals: (K,) log weights of the sources. src_idx: (K, 2) their grid indices (ix, iy).
+        org: (2,) window origin. n_side, w, cell_m: grid side, window side [cells], cell size [m].
+        step_m, sigma_v: as in `grid.predict`.
+
+    Returns:
+        `logsumexp_m [vals_m - relu(d_m - step)^2 / (2 sigma_v^2)]` with `d_m` a lower bound on the
+        distance from source m to the nearest grid cell outside the window [m] (`-inf` when the
+        window is the whole grid).
+    """
+    big = jnp.asarray(jnp.inf, vals.dtype)
+    lo = jnp.where(org > 0, (src_idx - org + 1).astype(vals.dtype), big)  # to cell org - 1
+    hi = jnp.where(org + w < n_side, (org + w - src_idx).astype(vals.dtype), big)  # to org + w
+    d = jnp.min(jnp.minimum(lo, hi), axis=-1) * cell_m
+    gap = jnp.maximum(d - step_m, 0.0)
+    t = jnp.where(jnp.isfinite(gap), -0.5 * jnp.square(gap / sigma_v), -jnp.inf)
+    return jax.nn.logsumexp(jnp.where(jnp.isfinite(vals), vals + t, -jnp.inf))
+
+
+def window_mask(mask: Bool[Array, "nx ny"], org: Int[Array, " 2"], w: int) -> Bool[Array, " cells"]:
+    """(W^2,) allowed cells of one node inside its window."""
+    return jax.lax.dynamic_slice(mask, (org[0], org[1]), (w, w)).reshape(-1)

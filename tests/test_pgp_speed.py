@@ -1,0 +1,140 @@
+"""Fast PGP path (`likelihood="window"`) against the direct evaluation; chunked `advance`."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from jaxcal.data import MeshDataset
+from jaxcal.errors import JaxcalError
+from jaxcal.mesh import fast as F
+from jaxcal.mesh import grid as G
+from jaxcal.mesh import pgp
+from jaxcal.mesh.pgp import PGPParams, prepare, run_pgp
+
+# 0.25 m cells on a 49 x 49 grid, windows of 16 x 16 cells: the windows are a small part of the grid
+FINE = dict(
+    cell_m=0.25,
+    extent_m=6.0,
+    margin_m=10.0,
+    top_k=8,
+    max_hyp=4,
+    tau=0.8,
+    sigma_r=0.3,
+    sigma_v=0.2,
+    r_est=0.6,
+    min_refs=2,
+    p_out=0.0,
+    window_m=4.0,
+)
+
+
+def mesh(k=10, n=6, seed=0, noise=0.05, jump=None) -> MeshDataset:
+    """Random nodes in a 5 m square; `jump=(epoch, node, dx)` moves one node from that epoch on."""
+    rng = np.random.default_rng(seed)
+    while True:
+        pos = rng.uniform(0, 5.0, (n, 2))
+        d = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
+        if d[np.triu_indices(n, 1)].min() > 1.2:
+            break
+    r = np.repeat(d[None], k, 0)
+    if jump is not None:
+        e, i, dx = jump
+        moved = pos.copy()
+        moved[i, 0] += dx
+        r[e:] = np.linalg.norm(moved[:, None] - moved[None], axis=-1)
+    r = np.abs(r + rng.normal(0, noise, r.shape))
+    r = (r + np.swapaxes(r, 1, 2)) / 2
+    for e in range(k):
+        np.fill_diagonal(r[e], np.nan)
+    return MeshDataset(name="t", node_ids=[f"n{i}" for i in range(n)], time=np.arange(k) * 0.1,
+                       range=r.astype(np.float32), truth=pos)
+
+
+def run(ds, likelihood, **kw):
+    p = PGPParams(**{**FINE, **kw, "likelihood": likelihood})
+    cfg, prm, inp, lp0, _ = prepare(ds, p, None)
+    st, out = pgp.run_filter(cfg, prm, inp, lp0)
+    return cfg, st, out
+
+
+@pytest.fixture(scope="module")
+def jump_runs():
+    ds = mesh(k=22, jump=(12, 4, 0.9))
+    return run(ds, "window"), run(ds, "direct")
+
+
+def test_window_equals_direct_and_is_used(jump_runs):
+    (cfg_w, st_w, out_w), (cfg_d, st_d, out_d) = jump_runs
+    assert cfg_w.window == 16 and cfg_d.window == 0 and cfg_w.grid.n_side == 49
+    used = np.asarray(out_w.windowed)
+    assert used.sum() >= 4, used  # the windows did run ...
+    assert not used[:2].any()  # ... but not before every node is localised
+    np.testing.assert_array_equal(np.isnan(out_w.raw), np.isnan(out_d.raw))
+    np.testing.assert_allclose(out_w.raw, out_d.raw, atol=1e-9)
+    np.testing.assert_allclose(np.exp(st_w.logpost), np.exp(st_d.logpost), atol=1e-9)
+    np.testing.assert_allclose(out_w.log_evidence, out_d.log_evidence, atol=1e-7)
+    np.testing.assert_array_equal(out_w.n_factors, out_d.n_factors)
+
+
+def test_window_falls_back_to_full_grid_when_mass_moves(jump_runs):
+    """Node 4 jumps 0.9 m at epoch 12: the bound fails, that epoch runs on the full grid, and
+    the windows take over again; the estimates follow the direct evaluation throughout."""
+    (_, _, out_w), (_, _, out_d) = jump_runs
+    used = np.asarray(out_w.windowed)
+    first = int(np.argmax(used))
+    assert not used[first:].all(), used  # a fallback after the windows had started
+    assert used[-1], used  # and windows again at the end
+    np.testing.assert_allclose(out_w.estimate, out_d.estimate, atol=1e-9)
+
+
+def test_outside_bound_bounds_the_full_prior():
+    """`fast.outside_bound` is >= the motion update of eq. (7)-(8) at every cell outside the
+    window (v dt = 0 and > 0)."""
+    grid = G.Grid(n_half=15, cell_m=0.25)
+    cells = grid.cells()
+    rng = np.random.default_rng(0)
+    w = 16
+    for step in (0.0, 0.3):
+        logp = rng.normal(0, 3.0, cells.shape[0])
+        logp[np.linalg.norm(np.asarray(cells) - [0.5, -0.25], axis=1) > 0.6] = -np.inf
+        logp -= np.logaddexp.reduce(logp)
+        vals, idx = jax.lax.top_k(logp, 6)
+        src_idx = np.stack([np.asarray(idx) // grid.n_side, np.asarray(idx) % grid.n_side], -1)
+        org = F.window_origin(idx[0], grid.n_side, w)
+        prior = np.asarray(G.predict_direct(logp, cells, 6, step, 0.2)).reshape(31, 31)
+        inside = np.zeros((31, 31), bool)
+        inside[org[0] : org[0] + w, org[1] : org[1] + w] = True
+        b = float(F.outside_bound(vals, src_idx, org, 31, w, 0.25, step, 0.2))
+        assert prior[~inside].max() <= b + 1e-12
+        assert b < prior[inside].max() - 10  # and it is not vacuous
+
+
+@pytest.mark.parametrize("likelihood", ["window", "direct"])
+def test_chunked_advance_equals_one_run(likelihood):
+    ds = mesh(k=12, seed=1)
+    p = PGPParams(**{**FINE, "likelihood": likelihood, "smoothing": "ema", "alpha": 0.5})
+    res, _ = run_pgp(ds, p)
+    cfg, *_ = prepare(ds, p, None)
+    s = pgp.start(ds.n_nodes, p, (0, 1, 2), radius_m=cfg.grid.n_half * cfg.grid.cell_m)
+    assert s.cfg.grid == cfg.grid
+    t = np.asarray(ds.time)
+    dt = np.diff(t, prepend=t[:1])
+    got = []
+    for a, b in [(0, 4), (4, 8), (8, 12)]:  # equal chunk lengths: one compilation
+        s, est = pgp.advance(s, ds.range[a:b], dt[a:b])
+        got.append(est)
+    np.testing.assert_allclose(np.concatenate(got), res.track_position, atol=1e-12)
+    assert s.epochs == 12
+    post = pgp.stream_posterior(s)
+    assert post.shape == (6, 49, 49)
+    np.testing.assert_allclose(post.sum(axis=(1, 2)), 1.0, atol=1e-9)
+
+
+def test_stream_bad_input_is_a_clear_error():
+    with pytest.raises(JaxcalError, match="anchors"):
+        pgp.start(4, FINE, (0, 0, 1))
+    s = pgp.start(4, FINE, radius_m=3.0)
+    with pytest.raises(JaxcalError, match="advance"):
+        pgp.advance(s, np.zeros((2, 5, 5)), np.zeros(2))
