@@ -29,7 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "gate": ("gate", "UWB range-zone gated place recognition (--simulate DIR for a demo yard)"),
     "tune": ("tune", "fit sigma_r, sigma_v and tau of the PGP filter by gradient (truth or evidence)"),
     "sweep": ("sweep", "run a parameter x scenario x seed grid of the PGP filter (vmapped, sharded, resumable)"),
-    "report": ("report", "write figures and an index.html of results against the truth (the papers' figures)"),
+    "report": ("report", "write figures and an index.html of results against the truth, and of sweeps"),
 }
 
 

@@ -653,13 +653,19 @@ def trajectory_anchors(
     return fig
 
 
-def sweep_surface(sigma_r: np.ndarray, tau: np.ndarray, rmse: np.ndarray, title: str = ""):
-    """RMSE over a sigma_r x tau parameter sweep, as a colour map with the best cell marked.
+def sweep_surface(
+    sigma_r: np.ndarray,
+    tau: np.ndarray,
+    rmse: np.ndarray,
+    title: str = "",
+    label: str = "RMSE [m]",
+):
+    """A metric (RMSE by default) over a sigma_r x tau parameter sweep: colour map, lowest cell marked.
 
     Args:
         sigma_r: (S,) ranging standard deviations [m]. tau: (T,) probability-mass fractions.
-        rmse: (S, T) RMSE [m] of each run (NaN: failed).
-        title: panel title.
+        rmse: (S, T) value of each cell (NaN: failed or not run; drawn grey), lower is better.
+        title: panel title. label: colour-bar label with the unit of `rmse`.
 
     Returns:
         Figure with one panel and a colour bar.
@@ -679,20 +685,34 @@ def sweep_surface(sigma_r: np.ndarray, tau: np.ndarray, rmse: np.ndarray, title:
     )
     ax.set_xticks(range(s.size), [f"{v:g}" for v in s], rotation=45 if s.size > 8 else 0)
     ax.set_yticks(range(t.size), [f"{v:g}" for v in t])
+    if r.size <= 100:  # small grids: the numbers themselves, dark on light cells and vice versa
+        fin = r[np.isfinite(r)]
+        mid = 0.5 * (fin.min() + fin.max()) if fin.size else 0.0  # viridis: dark below the middle
+        best = np.nanargmin(r) if fin.size else -1
+        for k, ((i, j), v) in enumerate(np.ndenumerate(r)):
+            ax.text(
+                i,
+                j + (0.22 if k == best else 0.0),
+                "n/a" if not np.isfinite(v) else f"{v:.3g}",
+                ha="center",
+                va="center",
+                fontsize=8 if r.size > 30 else 9,
+                color="0.3" if not np.isfinite(v) else ("white" if v < mid else "black"),
+            )
     if np.isfinite(r).any():
         i, j = np.unravel_index(np.nanargmin(r), r.shape)
         ax.scatter(
             [i],
-            [j],
+            [j - (0.12 if r.size <= 100 else 0.0)],
             marker="*",
             s=160,
             color="red",
             edgecolor="white",
-            label=f"best: sigma_r {s[i]:g} m, tau {t[j]:g}, {r[i, j]:.2f} m",
+            label=f"lowest: sigma_r {s[i]:g} m, tau {t[j]:g}: {r[i, j]:.3g}",
         )
-        ax.legend(fontsize=8, loc="upper right")
+        fig.legend(fontsize=8, loc="outside lower center")
     ax.set_xlabel("sigma_r [m]")
     ax.set_ylabel("tau (probability-mass fraction)")
-    ax.set_title(title or "RMSE over the sweep")
-    fig.colorbar(im, ax=ax, label="RMSE [m]")
+    ax.set_title(title or f"{label} over the sweep")
+    fig.colorbar(im, ax=ax, label=label)
     return fig
