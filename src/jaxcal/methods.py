@@ -19,6 +19,7 @@ MESH_METHODS: dict[str, str] = {
     "pgp": "jaxcal.mesh.pgp:calibrate",
     "parametric": "jaxcal.mesh.parametric:calibrate",
     "batch": "jaxcal.mesh.batch:calibrate",
+    "pgp+batch": "jaxcal.mesh.hybrid:calibrate",
 }
 
 TRAJECTORY_METHODS: dict[str, str] = {

@@ -502,7 +502,8 @@ def _active_nodes(i: np.ndarray, j: np.ndarray, n: int, a0: int) -> np.ndarray:
 
 
 def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParams | None = None,
-          node_ids: tuple[str, ...] | None = None) -> BatchSolution:
+          node_ids: tuple[str, ...] | None = None,
+          extra_starts: np.ndarray | None = None) -> BatchSolution:
     """Robust batch fit of static node positions from a range stream.
 
     Args:
@@ -510,6 +511,9 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         anchors: (a0, a1, a2) node indices that define the output frame.
         params: `BatchParams` (defaults when None).
         node_ids: optional ids, only used in error messages.
+        extra_starts: optional (E, N, D) start configurations (e.g. PGP posterior modes), any frame, D <= dim;
+            NaN rows are filled from classical MDS. Each is added with its mirror image to the MDS / SMACOF
+            starts, so the best robust cost can only go down.
 
     Returns:
         A `BatchSolution` in the anchor frame.
@@ -559,6 +563,8 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
                           n_random, p.smacof_iters)
     if x0s.shape[0] < m and p.relocate_rounds > 0:  # init=cmds or smacof: pad with copies
         x0s = jnp.concatenate([x0s, x0s[:1].repeat(m - x0s.shape[0], axis=0)])
+    if extra_starts is not None:
+        x0s = jnp.concatenate([x0s, jnp.asarray(_extra_starts(extra_starts, sub, np.asarray(x0s[0]), p.dim))])
     s_count = x0s.shape[0]
     y0s = _State(x0s, jnp.zeros(s_count), jnp.zeros((s_count, m)))
     gnc = jnp.asarray(2.0 ** np.arange(p.gnc_stages - 1, -1, -1), dtype=float)
@@ -630,6 +636,21 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         offset_m=float(state.c) if p.bias != "none" else 0.0, node_offset_m=node_off,
         cost=cost, start_costs=costs, residual_sigma_m=float(np.sqrt(s2)),
     )
+
+
+def _extra_starts(starts: np.ndarray, sub: np.ndarray, base: np.ndarray, dim: int) -> np.ndarray:
+    """(E, N, D) user starts -> (2E, m, dim) on the connected nodes: NaN rows from `base`, plus mirror images."""
+    ex = np.asarray(starts, dtype=np.float64)
+    if ex.ndim == 2:
+        ex = ex[None]
+    ex = ex[:, sub, :dim]
+    if ex.shape[-1] < dim:  # 2-D modes for a 3-D fit: z from the MDS start
+        ex = np.concatenate([ex, np.broadcast_to(base[None, :, ex.shape[-1]:], ex.shape[:2] + (dim - ex.shape[-1],))],
+                            axis=-1)
+    ex = np.where(np.isfinite(ex), ex, base[None])
+    mirror = ex.copy()
+    mirror[..., 1] *= -1.0
+    return np.concatenate([ex, mirror])
 
 
 def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> Result:
