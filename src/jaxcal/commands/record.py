@@ -32,7 +32,15 @@ def add_arguments(p) -> None:
     p.add_argument("--name", default=None, help="dataset name (default: output file stem)")
     p.add_argument("--keep-journal", action="store_true", help="keep OUT.h5.journal after a clean stop")
     p.add_argument("--calibrate", default=None, metavar="METHOD",
-                   help="calibrate the recorded mesh with a registered mesh method (e.g. pgp) when done")
+                   help="live calibration while recording (pgp: the filter runs on epochs as they close, "
+                        "positions on stderr; OUT.pgp.h5 at the end); other mesh methods run once at the end")
+    p.add_argument("--config", default=None, metavar="A0,A1,A2",
+                   help="--calibrate: node ids of the frame (default: the first three by id order that ranged "
+                        "each other)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="--calibrate: override a method parameter")
+    p.add_argument("--min-epochs", type=int, default=20,
+                   help="--calibrate pgp: epochs each frame pair must range before the filter starts (20)")
     p.add_argument("--quiet", action="store_true", help="no status line")
     p.add_argument("--json", action="store_true", help="print one JSON object with the counters at the end")
 
@@ -67,9 +75,22 @@ def run(args) -> int:
         raise JaxcalError(f"--rate must be positive, got {args.rate}")
     out = Path(args.output)
     kw = {"epoch_s": args.epoch, "fmt": args.fmt, "name": args.name or out.stem, "self_id": args.self_id}
+    params = _overrides(args.set)
+    live = None
+    if args.calibrate == "pgp":
+        from jaxcal.io.live import LiveCalibrator
+
+        frame = None
+        if args.config is not None:
+            frame = tuple(s.strip() for s in args.config.split(","))
+            if len(frame) != 3 or len(set(frame)) != 3 or not all(frame):
+                raise JaxcalError(f"--config must be three distinct node ids a0,a1,a2, got {args.config!r}")
+        live = LiveCalibrator(params, frame, min_epochs=args.min_epochs,
+                              stream=None if (args.quiet and not args.json) else sys.stderr)
+    on_flush = live.guarded_update if live is not None else None
     t0 = time.monotonic()
     if args.replay:
-        rec = recorder.replay(args.replay, args.protocol, kw, rate=args.rate)
+        rec = recorder.replay(args.replay, args.protocol, kw, rate=args.rate, on_flush=on_flush)
         stopped = "end of input"
     else:
         if args.protocol is None:
@@ -78,17 +99,22 @@ def run(args) -> int:
         status = None if args.quiet else recorder.status_printer(sys.stderr)
         stopped = recorder.record_serial(
             rec, args.port, out, baud=args.baud, duration=args.duration, raw_out=args.raw_out,
-            rate=args.rate, shell_init=args.init, status=status,
+            rate=args.rate, shell_init=args.init, status=status, on_flush=on_flush,
         )
-    written = rec.write(out)
+    if live is not None:
+        live.guarded_update(rec, final=True)  # the last epochs; sets the frame written to the file
+    written = rec.write(out)  # the recording first: a calibration failure never loses it
     if written:
         recorder.finish_journal(rec, args.keep_journal)
     summary = rec.summary()
     summary.update(output=str(out) if written else None, stopped=stopped, seconds=time.monotonic() - t0)
-    calibration = None
+    calib_error = None
     if written and args.calibrate:
-        calibration = _calibrate(out, args.calibrate)
-        summary["calibration"] = calibration
+        try:
+            summary["calibration"] = _calibrate(out, args.calibrate, live, params, args.config)
+        except Exception as e:  # noqa: BLE001 - any failure: one line, the recording is already safe
+            calib_error = " ".join(str(e).split()) or type(e).__name__
+            summary["calibration"] = {"method": args.calibrate, "error": calib_error}
     if args.json:
         print_json(summary)
     elif written and (args.replay or args.quiet):
@@ -103,11 +129,25 @@ def run(args) -> int:
             f"({summary['frames']} frames, {summary['checksum_failures']} checksum failures, "
             f"{summary['bytes_skipped']} bytes skipped) is not enough for a {rec.kind() or 'mesh'} file{where}"
         )
+    if calib_error is not None:
+        raise JaxcalError(f"recording written to {out}, but --calibrate {args.calibrate} failed: {calib_error}")
     return 0
 
 
-def _calibrate(path, method: str) -> dict:
-    """Hook for issue 8 item 4: for now, calibrate the finished recording once (not live)."""
+def _overrides(items) -> dict:
+    from jaxcal.errors import JaxcalError
+
+    out = {}
+    for item in items:
+        if "=" not in item:
+            raise JaxcalError(f"--set wants KEY=VALUE, got {item!r}")
+        k, v = item.split("=", 1)
+        out[k.strip()] = v.strip()
+    return out
+
+
+def _calibrate(path, method: str, live, params: dict, config: str | None) -> dict:
+    """Write OUT.METHOD.h5: the live filter's result (pgp), else one run of the method on the file."""
     from jaxcal.commands._common import load
     from jaxcal.errors import JaxcalError
     from jaxcal.io import hdf5
@@ -115,9 +155,19 @@ def _calibrate(path, method: str) -> dict:
 
     ds = load(str(path), ("mesh",))
     if not hasattr(ds, "node_ids"):
-        raise JaxcalError(f"--calibrate {method}: needs a mesh recording")
-    result = calibrate(ds, method)
+        raise JaxcalError(f"--calibrate {method}: needs a mesh recording, this one is a trajectory file")
+    if live is not None:
+        if live.error is not None:
+            raise JaxcalError(live.error)
+        result = live.result(ds)
+    else:
+        if config is not None:
+            raise JaxcalError("--config needs --calibrate pgp (the live frame)")
+        result = calibrate(ds, method, params or None)
     res_path = str(path)[: -len(".h5")] if str(path).endswith(".h5") else str(path)
     res_path += f".{method}.h5"
     hdf5.write(res_path, result)
-    return {"method": method, "output": res_path, "ids": list(result.ids), "position": result.position}
+    info = {"method": method, "output": res_path, "ids": list(result.ids), "position": result.position}
+    if live is not None:
+        info.update(live=True, frame=list(live.frame), restarts=live.restarts, settled=live.settled_at)
+    return info

@@ -174,6 +174,7 @@ class Recording:
         self.time_source = "host"
         self.start_wall_time = time.strftime("%Y-%m-%dT%H:%M:%S%z")
         self.journal: JournalWriter | None = None
+        self.frame_ids: tuple[str, str, str] | None = None  # written as the mesh's `default` configuration
 
     # ---- ingestion
     def add(self, frames: list[Frame], t: float) -> int:
@@ -268,9 +269,12 @@ class Recording:
         et = np.bincount(k, weights=t, minlength=K) / np.bincount(k, minlength=K)
         idx = np.arange(n)
         rng[:, idx, idx] = np.nan  # a node ranging itself is not a measurement
+        configs = ()
+        if self.frame_ids is not None and all(i in self.ids for i in self.frame_ids):
+            configs = (("default", tuple(self.ids[i] for i in self.frame_ids)),)
         return MeshDataset(
             name=self.name, node_ids=list(self.ids), time=et, range=rng,
-            fp_rssi=fp if has_fp else None, rx_rssi=rx if has_rx else None,
+            fp_rssi=fp if has_fp else None, rx_rssi=rx if has_rx else None, configs=configs,
             description=(
                 f"Recorded by jaxcal record ({self.protocol}). Epochs: {self.epoch_s:g} s windows of "
                 f"{self.time_source} time; range = mean of the window's measurements. Raw frames in /raw."
@@ -402,7 +406,8 @@ def _reframe(protocol: str, raw: bytes) -> bytes:
     return raw + b"\n" if protocol == "dwm1001-shell" else raw
 
 
-def replay(path: str | os.PathLike, protocol: str | None, rec_kwargs: dict, rate: float = 10.0) -> Recording:
+def replay(path: str | os.PathLike, protocol: str | None, rec_kwargs: dict, rate: float = 10.0,
+           on_flush: Callable[[Recording], None] | None = None, flush_s: float = 1.0) -> Recording:
     """Decode a raw byte capture, a recorder journal or a recorded HDF5 file (its `raw` group).
 
     Args:
@@ -411,6 +416,8 @@ def replay(path: str | os.PathLike, protocol: str | None, rec_kwargs: dict, rate
             (or be None).
         rec_kwargs: keyword arguments of `Recording` (epoch_s, fmt, name, self_id).
         rate: frames per second assumed for DWM1001 captures (no device time).
+        on_flush: called with the recording whenever `flush_s` seconds of frame time have passed since
+            the last call, as the live recorder calls it at each flush (live calibration).
 
     Returns:
         The `Recording`, ready to `write`.
@@ -430,29 +437,52 @@ def replay(path: str | os.PathLike, protocol: str | None, rec_kwargs: dict, rate
         sp = stored.get("protocol")
         if protocol is not None and protocol != sp:
             raise JaxcalError(f"{p}: recorded with protocol {sp}, not {protocol}")
-        kw = dict(rec_kwargs)
+        kw = {k: v for k, v in rec_kwargs.items() if k != "frame_ids"}
         if not kw.get("self_id") and stored.get("self_id"):
             kw["self_id"] = stored["self_id"]
         rec = Recording(sp, **kw)
+        rec.frame_ids = rec_kwargs.get("frame_ids")
+        flush = _Flusher(rec, on_flush, flush_s)
         rec.time_source = stored.get("time_source", "host")
         rec.start_wall_time = stored.get("start_wall_time", rec.start_wall_time)
         dec = rec.decoder
         for t, raw in records:
             rec.add(dec.feed(_reframe(sp, raw)) + dec.finish(), t)
+            flush(t)
         return rec
     if protocol is None:
         raise JaxcalError("--protocol is required to replay a raw byte capture")
-    rec = Recording(protocol, **rec_kwargs)
+    rec = Recording(protocol, **{k: v for k, v in rec_kwargs.items() if k != "frame_ids"})
+    rec.frame_ids = rec_kwargs.get("frame_ids")
+    flush = _Flusher(rec, on_flush, flush_s)
     rec.time_source = "device" if protocol == "nlink" else f"frame index / {rate:g} Hz"
     clock = _DeviceClock(protocol, rate)
     dec = rec.decoder
     with open(p, "rb") as fh:
         while chunk := fh.read(1 << 16):
             for f in dec.feed(chunk):
-                rec.add([f], clock(f))
+                t = clock(f)
+                rec.add([f], t)
+                flush(t)
     for f in dec.finish():
         rec.add([f], clock(f))
     return rec
+
+
+class _Flusher:
+    """Calls `on_flush(rec)` each time frame time passes the next multiple of `flush_s` (replay)."""
+
+    def __init__(self, rec: Recording, on_flush, flush_s: float) -> None:
+        self.rec, self.on_flush, self.flush_s, self.next = rec, on_flush, flush_s, None
+
+    def __call__(self, t: float) -> None:
+        if self.on_flush is None:
+            return
+        if self.next is None:
+            self.next = t + self.flush_s
+        elif t >= self.next:
+            self.on_flush(self.rec)
+            self.next = t + self.flush_s
 
 
 def _read_h5_raw(p: Path) -> tuple[dict, list[tuple[float, bytes]]]:
@@ -488,6 +518,7 @@ def record_serial(
     rate: float = 10.0,
     shell_init: bool = False,
     status: Callable[[dict, float, bool], None] | None = None,
+    on_flush: Callable[[Recording], None] | None = None,
 ) -> str:
     """Read `port` until `duration` seconds pass, Ctrl-C or SIGTERM; journal + snapshot as described in
     the module docstring. Returns why it stopped (``"duration"``, ``"interrupt"``, ``"sigterm"``).
@@ -503,6 +534,8 @@ def record_serial(
         rate: DWM1001 TLV polling rate [Hz].
         shell_init: DWM1001 shell: send ``\\r\\r``, wait 1.1 s, send ``lec\\r`` (lec toggles the stream).
         status: callback(summary, elapsed_s, final) for the status line.
+        on_flush: called with the recording after each journal flush (live calibration); its
+            exceptions are the caller's to contain.
     """
     import serial  # pyserial
 
@@ -594,6 +627,8 @@ def record_serial(
                     if rec.write(out):
                         snap_cost = time.monotonic() - s0
                     last_snap = now
+                if on_flush is not None:
+                    on_flush(rec)
             if status is not None and now - last_status >= 0.5:
                 status(rec.summary(), now - t0, False)
                 last_status = now
