@@ -343,3 +343,123 @@ def test_sigkill_leaves_a_readable_file(tmp_path):
     assert p.returncode == 0, p.stderr
     assert json.loads(p.stdout)["frames"] == len(in_journal)
     assert _h5_frames(tmp_path / "rebuilt.h5") == in_journal
+
+
+# ------------------------------------------------------------------------------- live calibration (pgp)
+
+# A small static mesh with known truth [mm]; ids out of order so that the frame (first three by id
+# order: 1, 3, 5) is not the order of first appearance.
+LIVE_TRUTH = {3: (0, 0), 7: (8000, 0), 1: (3000, 6000), 5: (9000, 7000), 9: (-2000, 9000)}
+
+
+def live_capture(n_frames: int, seed: int = 0, late: tuple[int, int] | None = None, sd_mm: float = 100.0) -> bytes:
+    """NodeFrame3 frames (node-to-node ranges, Gaussian noise `sd_mm`), one every 20 ms (5 per 0.1 s
+    epoch), with garbage between some frames; `late = (id, frame index)`: that node joins then."""
+    rng = random.Random(seed)
+    out = bytearray()
+    for i in range(n_frames):
+        active = [j for j in LIVE_TRUTH if late is None or j != late[0] or i >= late[1]]
+        me = active[i % len(active)]
+        t = 1000 + 20 * i
+        nodes = [(0, j, int(round(np.hypot(*np.subtract(LIVE_TRUTH[me], LIVE_TRUTH[j])) + rng.gauss(0, sd_mm))), 180, 160)
+                 for j in active if j != me]
+        if rng.random() < 0.1:
+            out += bytes(rng.randrange(256) for _ in range(rng.randrange(1, 20)))
+        out += E.nodeframe2(0, me, t, t, 4900, (0, 0, 0), [(r, j, d, fp, rx, t) for r, j, d, fp, rx in nodes]) \
+            if i % 2 else E.nodeframe3(0, me, t, t, 4900, nodes)
+    return bytes(out)
+
+
+def frame_truth(ids: list[str], frame: tuple[str, str, str]) -> np.ndarray:
+    """(N, 2) true positions [m] in the frame a0 = origin, a1 on +x, a2 at y >= 0."""
+    p = np.array([LIVE_TRUTH[int(s.lstrip("N"))] for s in ids], float) / 1000.0
+    a0, a1, a2 = (ids.index(s) for s in frame)
+    p = p - p[a0]
+    c, s = (p[a1] / np.linalg.norm(p[a1]))
+    p = p @ np.array([[c, -s], [s, c]])
+    if p[a2, 1] < 0:
+        p[:, 1] = -p[:, 1]
+    return p
+
+
+def _cli_inproc(capsys, *args) -> tuple[int, str, str]:
+    from jaxcal.cli import main
+
+    try:
+        code = main([str(a) for a in args])
+    except SystemExit as e:  # argparse
+        code = e.code
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_live_pgp_replay_converges_and_equals_batch(tmp_path, capsys):
+    cap = tmp_path / "mesh.bin"
+    cap.write_bytes(live_capture(600))  # 120 epochs of 0.1 s
+    out = tmp_path / "rec.h5"
+    code, stdout, err = _cli_inproc(capsys, "record", "--replay", cap, "--protocol", "nlink", "-o", out,
+                                    "--calibrate", "pgp", "--json")
+    assert code == 0, err
+    s = json.loads(stdout)
+    cal = s["calibration"]
+    assert cal["live"] and cal["frame"] == ["N1", "N3", "N5"] and cal["restarts"] == 0
+    assert "live pgp: started after 20 epochs" in err and "settled at" in err and "final, epoch 120" in err
+    ds, live = hdf5.read(out), hdf5.read(tmp_path / "rec.pgp.h5")
+    assert ds.configs == (("default", tuple(ds.node_ids.index(s) for s in ("N1", "N3", "N5"))),)
+    truth = frame_truth(list(ds.node_ids), ("N1", "N3", "N5"))
+    # the live estimates converge: every node localised from epoch 20 (the start) on, aligned RMSE at the
+    # first estimates < 0.5 m and at the end < 0.25 m (noise 0.1 m, 0.5 m cells)
+    tr = live.track_position
+    assert np.isfinite(tr[20:]).all()
+    rmse = lambda e: float(np.sqrt(np.mean(np.sum((e - truth) ** 2, axis=1))))  # noqa: E731
+    assert rmse(tr[20]) < 0.5 and rmse(live.position) < 0.25, (rmse(tr[20]), rmse(live.position))
+    assert set(cal["settled"]) == set(ds.node_ids)
+    # chunking does not change the answer: the batch method on the recorded file gives the same result
+    code, _, err = _cli_inproc(capsys, "calibrate", out, "--method", "pgp", "-o", tmp_path / "batch.h5")
+    assert code == 0, err
+    batch = hdf5.read(tmp_path / "batch.h5")
+    assert batch.frame == live.frame
+    np.testing.assert_allclose(live.track_position, batch.track_position, atol=1e-6)
+    np.testing.assert_allclose(live.covariance, batch.covariance, atol=1e-6)
+    np.testing.assert_allclose(live.track_time, batch.track_time)
+
+
+def test_live_pgp_restarts_for_a_late_node(tmp_path, capsys):
+    from jaxcal.io.live import LiveCalibrator
+    from jaxcal.mesh.pgp import run_pgp
+
+    cap = tmp_path / "late.bin"
+    cap.write_bytes(live_capture(400, seed=3, late=(9, 200)))  # node 9 joins at about epoch 40
+    live = LiveCalibrator(stream=None)
+    rec = replay(cap, "nlink", {"epoch_s": 0.1}, on_flush=live.guarded_update)
+    live.guarded_update(rec, final=True)
+    assert live.error is None and live.restarts == 1 and live.n == 5
+    ds = rec.build_dataset()
+    res = live.result(ds)
+    batch, _ = run_pgp(ds)
+    # same epochs, same frame; the grid was sized from the buffered epochs at the restart, the batch one
+    # from all: equal within a cell
+    assert np.max(np.hypot(*(res.position - batch.position).T)) < 0.5
+    truth = frame_truth(list(ds.node_ids), live.frame)
+    assert np.sqrt(np.mean(np.sum((res.position - truth) ** 2, axis=1))) < 0.3
+    assert np.isnan(res.track_position[:30, ds.node_ids.index("N9")]).all()
+
+
+def test_live_pgp_failures_keep_the_recording(tmp_path):
+    cap = tmp_path / "mesh.bin"
+    cap.write_bytes(live_capture(150))
+    # the requested frame never ranges: the filter never starts
+    out = tmp_path / "a.h5"
+    p = run_cli("record", "--replay", cap, "--protocol", "nlink", "-o", out, "--calibrate", "pgp",
+                "--config", "N1,N3,N42", "--quiet", "--json")
+    assert_one_line_error(p, "recording written to")
+    assert "never started" in p.stderr
+    assert json.loads(p.stdout)["calibration"]["error"]
+    assert hdf5.read(out).n_epochs == 30 and not (tmp_path / "a.pgp.h5").exists()
+    # the filter fails when it starts (invalid parameter): recording still written, one line
+    out = tmp_path / "b.h5"
+    p = run_cli("record", "--replay", cap, "--protocol", "nlink", "-o", out, "--calibrate", "pgp",
+                "--set", "cell_m=-1", "--quiet")
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+    assert "live calibration stopped" in p.stderr.splitlines()[-1]
+    assert hdf5.read(out).n_epochs == 30

@@ -86,7 +86,7 @@ def run(args) -> int:
             if len(frame) != 3 or len(set(frame)) != 3 or not all(frame):
                 raise JaxcalError(f"--config must be three distinct node ids a0,a1,a2, got {args.config!r}")
         live = LiveCalibrator(params, frame, min_epochs=args.min_epochs,
-                              stream=None if (args.quiet and not args.json) else sys.stderr)
+                              stream=None if args.quiet else sys.stderr)
     on_flush = live.guarded_update if live is not None else None
     t0 = time.monotonic()
     if args.replay:
