@@ -150,6 +150,30 @@ def _safe_sqrt(d2):
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, d2, 1.0)), 0.0)
 
 
+def top_k(x: Float[Array, " n"], k: int) -> tuple[Float[Array, " k"], Int[Array, " k"]]:
+    """`lax.top_k(x, k)` (same values, same indices, ties to the lower index), faster on CPU.
+
+    XLA's CPU top-k is ~100x faster in float32 than in float64. Rounding to float32 is monotonic,
+    so the float64 top k lie among the 2k largest float32 values unless more than k + 1 values
+    share the float32 value of the k-th (then the lower indices are kept, as for exact ties); the
+    exact float64 top k are then ranked among those 2k candidates.
+    """
+    n = x.shape[-1]
+    if x.dtype == jnp.float32 or n <= 2 * k:
+        return jax.lax.top_k(x, k)
+    m = 2 * k
+    _, cand = jax.lax.top_k(x.astype(jnp.float32), m)
+    cand = jnp.sort(cand)
+    xc = x[cand]
+    # rank of each candidate (0: largest; ties to the lower index) by (2k)^2 comparisons, which
+    # is cheaper than a float64 sort on CPU; then place each candidate at its rank
+    i = jnp.arange(m)
+    before = (xc[None, :] > xc[:, None]) | ((xc[None, :] == xc[:, None]) & (i[None, :] < i[:, None]))
+    rank = jnp.sum(before, axis=1)
+    j = jnp.zeros((m,), i.dtype).at[rank].set(i)[:k]
+    return xc[j], cand[j]
+
+
 def top_hypotheses(
     logp: Float[Array, " cells"], cells: Float[Array, "cells 2"], n_hyp: int, tau: Float[Array, ""]
 ) -> tuple[Float[Array, "hyp 2"], Float[Array, " hyp"]]:
@@ -167,7 +191,7 @@ def top_hypotheses(
     Returns:
         (H, 2) hypothesis positions [m] and (H,) log weights (-inf for cells not taken).
     """
-    vals, idx = jax.lax.top_k(logp, n_hyp)
+    vals, idx = top_k(logp, n_hyp)
     w = jnp.exp(vals)
     before = jnp.concatenate([jnp.zeros((1,), w.dtype), jnp.cumsum(w)[:-1]])
     keep = (before < tau) & jnp.isfinite(vals)
@@ -195,7 +219,7 @@ def soft_hypotheses(
     Returns:
         (H, 2) hypothesis positions [m] and (H,) normalised log weights.
     """
-    vals, idx = jax.lax.top_k(logp, n_hyp)
+    vals, idx = top_k(logp, n_hyp)
     w = jnp.where(jnp.isfinite(vals), jnp.exp(vals), 0.0)
     before = jnp.concatenate([jnp.zeros((1,), w.dtype), jnp.cumsum(w)[:-1]])
     cut = jax.nn.log_sigmoid((tau - before) / temp).at[0].set(0.0)
@@ -232,9 +256,9 @@ def predict(
     )
 
 
-def predict_direct(logp, cells, top_k: int, step_m, sigma_v):
+def predict_direct(logp, cells, k: int, step_m, sigma_v):
     """Eq. (7)-(8) evaluated directly: (C, K) transition terms, any `v dt`."""
-    vals, idx = jax.lax.top_k(logp, top_k)
+    vals, idx = top_k(logp, k)
     src = cells[idx]
     d = safe_norm(
         jnp.stack(
@@ -245,7 +269,7 @@ def predict_direct(logp, cells, top_k: int, step_m, sigma_v):
     return jax.nn.logsumexp(vals[:, None] + logt, axis=0)
 
 
-def predict_static(logp, cells, top_k: int, sigma_v):
+def predict_static(logp, cells, k: int, sigma_v):
     """Eq. (7)-(8) for `v dt = 0`: `exp(-|d|^2 / 2s^2) = exp(-dx^2 / 2s^2) exp(-dy^2 / 2s^2)`, so
     the sum over
     the K sources is `Ex diag(p) Ey^T`, with each row and column shifted by its largest log term so
@@ -253,7 +277,7 @@ def predict_static(logp, cells, top_k: int, sigma_v):
     product stays in range. Where even that underflows (cells whose prior is below ~1e-30 of the
     bound), the bound times the smallest normal number is used: finite, and negligible."""
     n = int(round(math.sqrt(cells.shape[0])))
-    vals, idx = jax.lax.top_k(logp, top_k)
+    vals, idx = top_k(logp, k)
     src = cells[idx]
     ax = cells[::n, 0]  # x of row ix (cells are ix-major)
     ay = cells[:n, 1]

@@ -363,7 +363,7 @@ def _window_epoch(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st: F
     hyps = tuple(h.at[1].set(h1_[0]) for h, h1_ in zip(hyps, h1, strict=True))
 
     def node(win_i, org_i, wc_i, mask_i, z_i, use_i):
-        vals, idx = jax.lax.top_k(win_i, cfg.top_k)
+        vals, idx = G.top_k(win_i, cfg.top_k)
         src_idx = org_i[None, :] + jnp.stack([idx // w, idx % w], axis=-1)
         new_org = F.window_origin(src_idx[0, 0] * grid.n_side + src_idx[0, 1], grid.n_side, w)
         cells = F.window_cells(new_org, grid, w, dtype)
@@ -381,7 +381,7 @@ def _window_epoch(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st: F
 
     win, org, bound, ev, raw = jax.vmap(node)(win, st.org, wc_old, inp.mask, z, use)
     # a1 on its row: eq. (7)-(8) from its top_k cells, eq. (11) with a0's hypothesis
-    vals, idx = jax.lax.top_k(st.row, cfg.top_k)
+    vals, idx = G.top_k(st.row, cfg.top_k)
     d = G.safe_norm(row_cells[None, :, :] - row_cells[idx][:, None, :])
     prior = jax.nn.logsumexp(vals[:, None] - 0.5 * jnp.square((d - step_m) / prm.sigma_v), axis=0)
     ll = G.node_loglik(row_cells, hyps[0], hyps[1], hyps[2], z[1], use[1], prm.p_out)
@@ -574,6 +574,8 @@ def _setup(params: PGPParams, grid: G.Grid, n: int, mode: str, snaps: np.ndarray
     window = 0
     if params.likelihood == "window" and params.update_order == "jacobi":
         window = F.window_side(params.window_m, grid)
+        if window * window < params.top_k or grid.n_side < params.top_k:
+            window = 0  # the windows (and a1's row) must hold the top_k cells of eq. (7)
     cfg = FilterConfig(
         grid=grid,
         top_k=min(params.top_k, grid.n_cells),
