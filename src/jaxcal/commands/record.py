@@ -3,7 +3,13 @@
     jaxcal record --port PORT --protocol nlink|dwm1001-tlv|dwm1001-shell [--baud B] [--duration S] -o OUT.h5
     jaxcal record --replay CAPTURE.bin|OUT.h5.journal|OUT.h5 [--protocol P] -o OUT.h5 [--json]
 
+    jaxcal record ... --calibrate pgp [--config A0,A1,A2] [--set KEY=VALUE] [--min-epochs 20]
+
 See `jaxcal.io.recorder` for the crash-safety design and the mapping of frames to mesh/trajectory files.
+`--calibrate pgp` is live (`jaxcal.io.live`: startup and restart rules, the settled flag): the filter
+runs on the epochs as they close, at each flush (replay: each second of frame time), node positions go
+to stderr, and OUT.pgp.h5 holds the live result (its track: every epoch's live estimate). The recording
+is always written first; a calibration failure is then reported in one line (exit 2).
 """
 
 from __future__ import annotations

@@ -135,7 +135,7 @@ class LiveCalibrator:
         mean = s[pairs] / m[pairs]
         et = float(np.bincount(np.zeros(t.size, np.int64), weights=t)[0] / t.size)
         i, j = pairs // n, pairs % n
-        for a, b in {(min(a, b), max(a, b)) for a, b in zip(i.tolist(), j.tolist())}:
+        for a, b in {(min(a, b), max(a, b)) for a, b in zip(i.tolist(), j.tolist(), strict=True)}:
             self.pair_epochs[(a, b)] = self.pair_epochs.get((a, b), 0) + 1
         self.epochs.append((self.n_closed, et, i, j, mean))
         self.times.append(et)
@@ -185,7 +185,7 @@ class LiveCalibrator:
             t = np.array([e[1] for e in part])
             prev = np.array([self.times[e[0] - 1] if e[0] > 0 else e[1] for e in part])
             self.pgp, est = pgp.advance(self.pgp, z, t - prev)
-            for e, row in zip(part, est):
+            for e, row in zip(part, est, strict=True):
                 while e[0] > len(self.track):  # dropped from the buffer before the filter started
                     self.track.append(np.full((self.n, 2), np.nan))
                 if e[0] < len(self.track):
@@ -299,7 +299,8 @@ class LiveCalibrator:
         head = "final" if final else f"t = {t:.1f} s"
         lines = [f"live pgp {head}, epoch {len(self.track)}: {int(st.sum())}/{self.n} settled"]
         lines.append(f"  {'node':>6} {'x [m]':>8} {'y [m]':>8} {'sd [m]':>7}  settled")
-        for i, name in enumerate(self.ids):
+        for name in sorted(self.ids, key=_id_key(self.ids)):
+            i = self.ids.index(name)
             x, y = est[i]
             pos = f"{x:8.2f} {y:8.2f}" if np.isfinite(x) else f"{'-':>8} {'-':>8}"
             lines.append(f"  {name:>6} {pos} {sd[i]:7.2f}  {'yes' if st[i] else 'no'}")
