@@ -318,12 +318,10 @@ def test_sigkill_leaves_a_readable_file(tmp_path):
         time.sleep(1.5)
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=10)
-        stop.set()
         written = len(b"".join(first)) + progress[-1]
     finally:
         if proc.poll() is None:
             proc.kill()
-        stop.set()
         os.close(slave)
         t.join(timeout=10)
         os.close(master)
@@ -463,3 +461,42 @@ def test_live_pgp_failures_keep_the_recording(tmp_path):
     assert p.returncode == 2 and "Traceback" not in p.stderr
     assert "live calibration stopped" in p.stderr.splitlines()[-1]
     assert hdf5.read(out).n_epochs == 30
+
+
+def test_live_pgp_over_a_pty_runs_during_the_recording(tmp_path):
+    """The serial path: record_serial calls the live filter at each flush while frames still arrive."""
+    from jaxcal.io.live import LiveCalibrator
+    from jaxcal.io.recorder import record_serial
+
+    master, slave, port = _pty()
+    data = live_capture(500, seed=7)
+    live = LiveCalibrator(stream=None)
+    fed_at_flush: list[int] = []
+
+    def on_flush(rec):
+        live.guarded_update(rec)
+        fed_at_flush.append(len(live.track))
+
+    rec = Recording("nlink", epoch_s=0.05)
+
+    def paced():  # about 3.5 s of frames, 0.05 s epochs: about 70 epochs of host time
+        for k in range(0, len(data), 350):
+            os.write(master, data[k : k + 350])
+            time.sleep(0.05)
+
+    w = threading.Thread(target=paced, daemon=True)
+    w.start()
+    try:
+        why = record_serial(rec, port, tmp_path / "pty.h5", duration=4.5, flush_s=0.5, on_flush=on_flush)
+    finally:
+        w.join(timeout=5)
+        os.close(master)
+        os.close(slave)
+    live.guarded_update(rec, final=True)
+    assert why == "duration" and live.error is None, live.error
+    assert any(0 < f < len(live.track) for f in fed_at_flush), fed_at_flush  # estimates before the end
+    assert rec.write(tmp_path / "pty.h5")
+    ds = hdf5.read(tmp_path / "pty.h5")
+    res = live.result(ds)
+    truth = frame_truth(list(ds.node_ids), live.frame)
+    assert np.sqrt(np.mean(np.sum((res.position - truth) ** 2, axis=1))) < 0.3
