@@ -38,6 +38,17 @@ GP's posterior variance of the range at the estimate times the identity (for `in
 metres by the derivative of the inverse transform): a cone of slope 1 shifted by one posterior
 standard deviation moves its apex by about as much.
 
+Parametric mean (`mean="anchor"`): the constant-mean GP above has no notion of where the anchor is;
+the cuboid search minimises the GP's extrapolation when the anchor lies outside the region the tag
+covers, and the height is barely observable from near-planar trajectories. With `mean="anchor"` the GP
+models T(r) = T(|p - a| + b) + f(p): the anchor a and the bias b are mean parameters fitted jointly
+with the kernel hyperparameters by maximising the marginal likelihood (`fit_mean_model`, Optimistix
+BFGS, initialised from `nls` on all ranges), and f absorbs spatially correlated range errors (NLOS
+bias along stretches of the route). The estimate is a; its covariance is the anchor block of the
+inverse Hessian of the negative log marginal likelihood (eigenvalues taken in absolute value and
+floored, so a flat or saddle direction gives a large variance, never a negative one). One stage, the
+same stratified subsample; no cuboid search.
+
 tinygp is not used: it would add a dependency for a dense GP with one kernel, and its Matern kernels
 are the half-integer ones only (no nu = 5/3).
 """
