@@ -27,6 +27,7 @@ CONFIGS = [
     ("nls", {}),
     ("gp", {"target": "range", "nu": 1.5}),
     ("gp", {"target": "inv-log", "nu": 5.0 / 3.0}),
+    ("gp", {"mean": "anchor"}),
 ]
 
 
