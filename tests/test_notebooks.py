@@ -1,4 +1,4 @@
-"""The notebooks run from top to bottom (small sizes: JAXCAL_NOTEBOOK_QUICK=1), so that they never rot.
+"""The notebooks run from top to bottom (small sizes: JAXCAL_NOTEBOOK_QUICK=1), so they never rot.
 
 Executed with nbclient on the `python3` kernel of the environment running the tests; outputs go to a
 temporary folder (JAXCAL_NOTEBOOK_OUT), the notebooks on disk are not modified.
@@ -6,6 +6,7 @@ temporary folder (JAXCAL_NOTEBOOK_OUT), the notebooks on disk are not modified.
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -42,8 +43,9 @@ def _text(nb) -> str:
 def test_mesh_torgau_notebook(tmp_path, monkeypatch):
     nb = _execute("mesh_torgau.ipynb", tmp_path, monkeypatch)
     text = _text(nb)
-    for label in ("cf/conf1", "cf/conf2", "parametric/conf1", "pgp/conf2"):
-        assert label in text
+    for label in ("cf/conf1", "cf/conf2", "pgp/conf1", "pgp/conf2"):
+        assert re.search(rf"^{label} +\d+\.\d\d +\d+\.\d\d", text, re.M), label
+    assert "parametric" not in text  # quick mode leaves the slow parametric filter out
     out = tmp_path / "mesh_torgau"
     assert (out / "index.html").is_file()
     for name in (
@@ -67,3 +69,25 @@ def test_gp_trajectory_notebook(tmp_path, monkeypatch):
     for method in ("gp", "nls", "ls"):
         assert re.search(rf"^{method} +mean anchor error \d+\.\d\d m", text, re.M), method
     assert (tmp_path / "gp_trajectory" / "anchors_trajectory.png").stat().st_size > 5000
+
+
+def test_tuning_sweep_notebook(tmp_path, monkeypatch):
+    nb = _execute("tuning_sweep.ipynb", tmp_path, monkeypatch)
+    text = _text(nb)
+    num = r"(-?\d+\.\d+)"
+    for objective in ("truth", "evidence"):
+        m = re.search(rf"^{objective} +{num} +{num} +{num} +{num} +{num} ", text, re.M)
+        assert m, objective
+        before, after, sigma_r, sigma_v, tau = map(float, m.groups())
+        assert after <= before  # tune never hands back a worse point than its start
+        assert sigma_r > 0 and sigma_v > 0 and 0 < tau < 1
+    for label in ("start", "tuned: truth", "tuned: evidence"):
+        assert re.search(rf"^{label} +{num} +{num} +{num} +{num} +{num}", text, re.M), label
+    out = tmp_path / "tuning_sweep"
+    numbers = json.loads((out / "report" / "report.json").read_text())
+    (sw,) = numbers["sweeps"]
+    assert len(sw["sigma_r_m"]) == 2 and len(sw["tau"]) == 2
+    best = min(v for row in sw["values"] for v in row if v is not None)
+    assert f"lowest RMSE {best:.2f} m" in text
+    assert (out / "report" / "sweep_0.png").stat().st_size > 5000
+    assert any("image/png" in o.get("data", {}) for c in nb.cells for o in c.get("outputs", []))
