@@ -81,6 +81,10 @@ def run(args) -> int:
         raise JaxcalError(f"--rate must be positive, got {args.rate}")
     out = Path(args.output)
     kw = {"epoch_s": args.epoch, "fmt": args.fmt, "name": args.name or out.stem, "self_id": args.self_id}
+    if (args.config is not None or args.set) and args.calibrate is None:
+        raise JaxcalError("--config and --set need --calibrate")
+    if args.config is not None and args.calibrate != "pgp":
+        raise JaxcalError("--config needs --calibrate pgp (the live frame)")
     params = _overrides(args.set)
     live = None
     if args.calibrate == "pgp":
@@ -167,8 +171,6 @@ def _calibrate(path, method: str, live, params: dict, config: str | None) -> dic
             raise JaxcalError(live.error)
         result = live.result(ds)
     else:
-        if config is not None:
-            raise JaxcalError("--config needs --calibrate pgp (the live frame)")
         result = calibrate(ds, method, params or None)
     res_path = str(path)[: -len(".h5")] if str(path).endswith(".h5") else str(path)
     res_path += f".{method}.h5"
