@@ -285,7 +285,8 @@ class LiveCalibrator:
 
     def _say(self, line: str) -> None:
         if self.out is not None:
-            self.out.write(line + "\n")
+            tty = getattr(self.out, "isatty", lambda: False)()
+            self.out.write(("\r\x1b[K" if tty else "") + line + "\n")  # clear the recorder's status line
             self.out.flush()
 
     def _report(self, final: bool) -> None:
