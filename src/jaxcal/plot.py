@@ -1,8 +1,9 @@
-"""Figures of the papers (matplotlib): pure functions of arrays that return a `matplotlib.figure.Figure`.
+"""Figures of the papers (matplotlib): pure functions of arrays that return matplotlib Figures.
 
-matplotlib is imported inside each function (so `import jaxcal` stays light) and figures are built with
-the object-oriented API (`Figure`, never `pyplot`): no global state, no GUI backend; `fig.savefig` renders
-with Agg. In a notebook a returned figure displays itself after `%matplotlib inline`.
+matplotlib is imported inside each function (so `import jaxcal` stays light) and figures are built
+with the object-oriented API (`Figure`, never `pyplot`): no global state, no GUI backend;
+`fig.savefig` renders with Agg. In a notebook a returned figure displays itself after
+`%matplotlib inline`.
 
 Units: metres everywhere. Every axis carries a label with its unit, every colour scale a colour bar.
 Figure numbers in the docstrings refer to the grid-filter paper (000 in ../shared/papers).
@@ -77,7 +78,8 @@ def ranging_histograms(err: np.ndarray, los: np.ndarray, bins: int = 80):
         a = np.abs(x)
         text = (
             f"mean {x.mean():+.2f} m\nmedian {np.median(x):+.2f} m\n"
-            f"|e| 68.27 % {np.quantile(a, 0.6827):.2f} m\n|e| 95.45 % {np.quantile(a, 0.9545):.2f} m"
+            f"|e| 68.27 % {np.quantile(a, 0.6827):.2f} m\n"
+            f"|e| 95.45 % {np.quantile(a, 0.9545):.2f} m"
         )
         ax.text(
             0.97,
@@ -246,13 +248,14 @@ def node_error_distributions(
     title: str = "",
     origin: Mapping[str, int] | None = None,
 ):
-    """Fig. 12a / 13a: per-node distribution of position errors over epochs, configurations side by side.
+    """Fig. 12a / 13a: per-node distribution of position errors over epochs, configurations abreast.
 
     Args:
         ids: (N,) node ids.
         errors: configuration -> (K, N) position error per epoch and node [m] (NaN: no estimate).
         title: panel title (e.g. the method).
-        origin: configuration -> index of its a0 (the frame's origin, no error by construction), or None.
+        origin: configuration -> index of its a0 (the frame's origin, no error by construction),
+            or None.
 
     Returns:
         Figure: boxes (5-95 % whiskers) of the per-epoch errors on a log axis, with each node's RMSE
@@ -422,8 +425,8 @@ def positions_map(
         title: panel title (e.g. the frame). level: ellipse probability mass.
 
     Returns:
-        Figure with one panel; the view is the truth's extent plus a margin, and estimates outside it are
-        counted in the legend.
+        Figure with one panel; the view is the truth's extent plus a margin, and estimates outside
+        it are counted in the legend.
     """
     from matplotlib.patches import Ellipse
 
@@ -431,7 +434,8 @@ def positions_map(
     ok = np.isfinite(t).all(axis=1)
     lo, hi = t[ok].min(axis=0), t[ok].max(axis=0)
     size = float(max(np.max(hi - lo), 1.0))
-    # the view holds the truth and every estimate within one truth extent of it; farther ones are counted
+    # the view holds the truth and every estimate within one truth extent of it; farther ones are
+    # counted
     near_lo, near_hi = lo - size, hi + size
     for pos, _ in estimates.values():
         p = np.asarray(pos, dtype=np.float64)[:, :2]
@@ -505,8 +509,8 @@ def posterior_grids(
 
     Args:
         axis_m: (n,) cell-centre coordinates of both grid axes [m].
-        grids: (S, M, n, n) probabilities, `grids[s, m, ix, iy]` at `(axis_m[ix], axis_m[iy])`, for the
-            S epochs and M nodes.
+        grids: (S, M, n, n) probabilities, `grids[s, m, ix, iy]` at `(axis_m[ix], axis_m[iy])`,
+            for the S epochs and M nodes.
         node_ids: (M,) ids of the rows. epochs: (S,) epoch indices of the columns.
         truth: (M, 2+) true positions in the grid's frame [m], or None.
         estimates: (S, M, 2) the filter's estimates at those epochs [m] (NaN: none), or None.
@@ -581,7 +585,7 @@ def trajectory_anchors(
     ids: Sequence[str],
     estimates: Mapping[str, tuple[np.ndarray, np.ndarray | None]],
 ):
-    """Anchors estimated from a trajectory, with 2-sigma error bars, over the platform's path (x-y plane).
+    """Anchors estimated from a trajectory, with 2-sigma error bars, over the platform's path (x-y).
 
     Args:
         path_xy: (P, 2+) platform positions [m]. anchor_truth: (A, 2+) surveyed anchors [m] or None.
@@ -589,7 +593,7 @@ def trajectory_anchors(
         estimates: label -> ((A, 2+) positions [m], (A, D, D) covariance [m^2] or None).
 
     Returns:
-        Figure with two panels: the whole scene, and a zoom on the surveyed anchors (when there is truth).
+        Figure with two panels: the whole scene, and a zoom on the surveyed anchors (with truth).
     """
     path = np.asarray(path_xy, dtype=np.float64)
     at = None if anchor_truth is None else np.asarray(anchor_truth, dtype=np.float64)
@@ -660,7 +664,7 @@ def sweep_surface(
     title: str = "",
     label: str = "RMSE [m]",
 ):
-    """A metric (RMSE by default) over a sigma_r x tau parameter sweep: colour map, lowest cell marked.
+    """A metric (default RMSE) over a sigma_r x tau parameter sweep: colour map, lowest cell marked.
 
     Args:
         sigma_r: (S,) ranging standard deviations [m]. tau: (T,) probability-mass fractions.

@@ -1,26 +1,28 @@
-"""Report folders: the papers' figures as PNG files and an `index.html` that shows them with their numbers.
+"""Report folders: the papers' figures as PNG files and an `index.html` showing them with numbers.
 
-`write_report(results, truth_dataset, out_dir)` is the one call (used by `jaxcal report` and `jaxcal demo`).
-It groups results by (method, configuration): a mesh result's configuration is the name in the dataset's
-`configs` whose (a0, a1, a2) equals the result's frame (else the frame string), a trajectory result's is
-its frame (`world`). What it draws depends on what is there:
+`write_report(results, truth_dataset, out_dir)` is the one call (used by `jaxcal report` and
+`jaxcal demo`). It groups results by (method, configuration): a mesh result's configuration is the
+name in the dataset's `configs` whose (a0, a1, a2) equals the result's frame (else the frame
+string), a trajectory result's is its frame (`world`). What it draws depends on what is there:
 
-- a dataset with truth: Table I (HTML), ranging residual histograms LOS / NLOS / all (Fig. 9), the Q-Q
-  plot with R^2 (Fig. 11a) and, for mesh data, the pairwise RMSE matrix (Fig. 11b);
+- a dataset with truth: Table I (HTML), ranging residual histograms LOS / NLOS / all (Fig. 9), the
+  Q-Q plot with R^2 (Fig. 11a) and, for mesh data, the pairwise RMSE matrix (Fig. 11b);
 - mesh results: a summary table, availability per node and configuration (Fig. 10, results with a
-  track), per-node error distributions per method with configurations side by side (Fig. 12a / 13a),
-  ECDFs of node RMSE and of per-epoch errors of every group (Fig. 12b / 13b), final positions with
-  95 % ellipses from the result's covariance over the truth (one figure per frame);
-- posterior grids (Fig. 6 style): PGP results do not store grids, so the report re-runs the PGP filter
-  (`jaxcal.mesh.pgp.run_pgp`, with the result's own parameters and frame) on the first epochs of the
-  dataset, up to the last requested epoch. The filter is causal, so the grid at epoch k of this short run
-  is the grid at epoch k of the full run. `posteriors="auto"` (default) picks the first `pgp` result, the
-  nodes a2, the best and the worst non-frame node by final error, and epochs 3, 10, 30, 100 (those that
-  exist); a `PosteriorSpec` names nodes and epochs; `"none"` skips the figure;
-- trajectory results: anchors with 2-sigma error bars over the platform path and a table of anchor errors;
+  track), per-node error distributions per method with configurations side by side (Fig. 12a /
+  13a), ECDFs of node RMSE and of per-epoch errors of every group (Fig. 12b / 13b), final
+  positions with 95 % ellipses from the result's covariance over the truth (one figure per frame);
+- posterior grids (Fig. 6 style): PGP results do not store grids, so the report re-runs the PGP
+  filter (`jaxcal.mesh.pgp.run_pgp`, with the result's own parameters and frame) on the first
+  epochs of the dataset, up to the last requested epoch. The filter is causal, so the grid at
+  epoch k of this short run is the grid at epoch k of the full run. `posteriors="auto"` (default)
+  picks the first `pgp` result, the nodes a2, the best and the worst non-frame node by final
+  error, and epochs 3, 10, 30, 100 (those that exist); a `PosteriorSpec` names nodes and epochs;
+  `"none"` skips the figure;
+- trajectory results: anchors with 2-sigma error bars over the platform path and a table of
+  anchor errors;
 - sweeps (`sweeps=[{"sigma_r", "tau", "rmse", "title", ...}]`, e.g. from `sweep_surfaces` of a
-  `jaxcal sweep` file): the RMSE (or another metric) surface over sigma_r x tau, figure and table.
-  No truth dataset is needed for a report of sweeps only.
+  `jaxcal sweep` file): the RMSE (or another metric) surface over sigma_r x tau, figure and
+  table. No truth dataset is needed for a report of sweeps only.
 
 Numbers also go to `report.json` next to `index.html`.
 """
@@ -77,7 +79,7 @@ SWEEP_METRICS = {
 
 @dataclasses.dataclass(frozen=True)
 class PosteriorSpec:
-    """Which posterior grids to draw: node ids (rows) at epochs (columns); `method` picks the result."""
+    """Which posterior grids to draw: node ids (rows) at epochs (columns); `method`: the result."""
 
     nodes: tuple[str, ...]
     epochs: tuple[int, ...]
@@ -414,8 +416,9 @@ def _mesh_section(
         )
     )
     page.p(
-        "RMSE over every (node, epoch) estimate except a0, in the result's frame; final: final positions; "
-        "aligned: final positions after the best rigid motion (with reflection) onto the truth."
+        "RMSE over every (node, epoch) estimate except a0, in the result's frame; final: final "
+        "positions; aligned: final positions after the best rigid motion (with reflection) onto "
+        "the truth."
     )
     labels = list(evals)
     ids = ds.node_ids
@@ -468,8 +471,8 @@ def _mesh_section(
                 ids, confs, title=f"{m}: per-node position error over epochs", origin=origin
             ),
             f"fig12a_node_errors_{m}",
-            f"Fig. 12a/13a ({m}): per-epoch position errors per node (boxes 25–75 %, whiskers 5–95 %, "
-            "diamonds: node RMSE).",
+            f"Fig. 12a/13a ({m}): per-epoch position errors per node (boxes 25–75 %, "
+            "whiskers 5–95 %, diamonds: node RMSE).",
         )
     node_rmse = {lab: np.array([n["rmse_m"] for n in ev["nodes"]]) for lab, ev in evals.items()}
     for (
@@ -596,7 +599,8 @@ def _posterior_section(
     page.figure(
         plot.posterior_grids(info.axis_m, grids, nodes, info.snapshot_epochs, truth, est),
         f"fig06_posteriors_{_slug(lab)}",
-        f"Posterior grids of {', '.join(nodes)} at epochs {', '.join(map(str, info.snapshot_epochs))} "
+        f"Posterior grids of {', '.join(nodes)} at epochs "
+        f"{', '.join(map(str, info.snapshot_epochs))} "
         f"({lab}, re-run on the first {k} epochs){note}.",
     )
 
@@ -630,7 +634,8 @@ def _trajectory_section(
     page.figure(
         plot.trajectory_anchors(ds.pose_position, truth, first.ids, est),
         "anchors_trajectory",
-        "Estimated anchors (±2σ from the result's covariance) over the platform path and the surveyed anchors.",
+        "Estimated anchors (±2σ from the result's covariance) over the platform path and the "
+        "surveyed anchors.",
     )
     errs = {lab: np.array([a["error_m"] for a in ev["anchors"]]) for lab, ev in evals.items()}
     page.figure(
@@ -721,8 +726,9 @@ def _sweep_section(page: _Page, sweeps: Sequence[Mapping[str, Any]], numbers: di
             page.p("; ".join(notes) + ".")
 
 
-_CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
-table{border-collapse:collapse;margin:.6em 0;font-size:.9em}th,td{border:1px solid #ccc;padding:.25em .6em}
+_CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;
+color:#222}table{border-collapse:collapse;margin:.6em 0;font-size:.9em}
+th,td{border:1px solid #ccc;padding:.25em .6em}
 table.num td{text-align:right}table.num td:first-child{text-align:left}th{background:#f0f0f0}
 figure{margin:1.2em 0}img{max-width:100%;border:1px solid #eee}figcaption{font-size:.9em;color:#555}
 details{margin:.5em 0}"""
@@ -739,7 +745,7 @@ def write_report(
     title: str | None = None,
     dpi: int = 110,
 ) -> Path:
-    """Write PNG figures, `index.html` and `report.json` for calibration results against a dataset's truth.
+    """Write PNG figures, `index.html` and `report.json` for results against a dataset's truth.
 
     Args:
         results: calibration results of the dataset (mesh or trajectory, not mixed).
