@@ -277,7 +277,9 @@ def test_live_pty_recording_exact_frames_and_sigterm(tmp_path):
     stream, valid = with_garbage(mesh_frames(600, seed=3), 4)
     proc = _recorder(port, out, "--raw-out", raw_out, "--json")
     try:
-        time.sleep(2.5)  # let it open the port (JAX import) before the stream starts
+        # the journal appears once the port is open (pyserial flushes the input on open): under load a
+        # fixed sleep was not always enough
+        assert _wait_for(lambda: (tmp_path / "live.h5.journal").exists())
         _writer(master, stream, 5)
         assert _wait_for(lambda: out.exists() and len(_h5_frames(out)) == len(valid))
         proc.send_signal(signal.SIGTERM)
@@ -309,7 +311,7 @@ def test_sigkill_leaves_a_readable_file(tmp_path):
     first, second = frames[:400], frames[400:]
     proc = _recorder(port, out, "--quiet")
     try:
-        time.sleep(2.5)
+        assert _wait_for(lambda: (tmp_path / "k.h5.journal").exists())  # the port is open
         _writer(master, b"".join(first), 6, delay=0.001)
         assert _wait_for(lambda: out.exists() and len(_h5_frames(out)) == len(first))
         stop, progress = threading.Event(), [0]
