@@ -487,7 +487,8 @@ def _scan(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st0: FilterSt
             bound = bound.at[1].set(-jnp.inf)  # a1 is kept as its whole row
         else:
             win, org, bound, row = st.win, st.org, st.bound, st.row
-        return logpost, heard, ev, nf, raw, win, org, bound, row
+        lm = jax.nn.logsumexp(lp, axis=1)
+        return logpost, heard, ev, nf, raw, win, org, bound, row, lm
 
     def epoch(st: FilterState, x):
         z, dt, k = x
@@ -505,17 +506,24 @@ def _scan(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st0: FilterSt
             )
             ok = pre & res[6]
 
-            def take_window():
+            # the full grid is an explicit operand (not a closure constant) of both branches, so
+            # the windowed branch can hand it through without a copy
+            def take_window(lp_full):
                 nf = jnp.sum(use0, axis=1).astype(dtype)
-                return (st.logpost, st.heard | use0, res[3], nf, res[4], res[0], res[1], res[2],
-                        res[5])
+                lm = jax.nn.logsumexp(res[0].reshape(n, -1), axis=1)
+                lm = lm.at[1].set(jax.nn.logsumexp(res[5]))
+                return (lp_full, st.heard | use0, res[3], nf, res[4], res[0], res[1], res[2],
+                        res[5], lm)
 
-            logpost, heard, ev, nf, raw, win, org, bound, row = jax.lax.cond(
-                ok, take_window, lambda: full_epoch(st, z, step_m)
+            def take_full(lp_full):
+                return full_epoch(dataclasses.replace(st, logpost=lp_full), z, step_m)
+
+            logpost, heard, ev, nf, raw, win, org, bound, row, lm = jax.lax.cond(
+                ok, take_window, take_full, st.logpost
             )
             windowed = ok
         else:
-            logpost, heard, ev, nf, raw, win, org, bound, row = full_epoch(st, z, step_m)
+            logpost, heard, ev, nf, raw, win, org, bound, row, lm = full_epoch(st, z, step_m)
             windowed = st.windowed
         loc = _localised(heard, inp.need)
         raw = jnp.where(loc[:, None], raw, nan2)
@@ -532,11 +540,6 @@ def _scan(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st0: FilterSt
                 lambda: st.snaps,
             )
             new = dataclasses.replace(new, snaps=snaps)
-        if windowed_mode:
-            lmw = jax.nn.logsumexp(win.reshape(n, -1), axis=1).at[1].set(jax.nn.logsumexp(row))
-            lm = jnp.where(windowed, lmw, jax.nn.logsumexp(logpost.reshape(n, -1), axis=1))
-        else:
-            lm = jax.nn.logsumexp(logpost.reshape(n, -1), axis=1)
         return new, FilterOut(est, raw, lm, ev, nf, windowed)
 
     k = inp.z.shape[0]
@@ -555,6 +558,107 @@ def _filter(
 
 
 run_filter = eqx.filter_jit(_filter)
+_scan_jit = eqx.filter_jit(_scan)
+
+
+def _scan_windows(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st: FilterState, valid,
+                  k0):
+    """Windowed epochs only, without the full grid in the carry (its copies cost O(cells) per
+    epoch). Stops (state frozen) at the first epoch that is not `valid` or cannot run on the
+    windows; returns (state, FilterOut, epochs done). `st.logpost` is not read."""
+    n = st.win.shape[0]
+    dtype = st.win.dtype
+    mask = inp.mask.reshape(n, -1)
+    log_cells = jnp.log(jnp.maximum(jnp.sum(mask, axis=1), 1).astype(dtype))
+    nan2 = jnp.full((n, 2), jnp.nan, dtype)
+
+    def epoch(carry, x):
+        st, go = carry
+        z, dt, k, v = x
+        step_m = prm.v * dt
+        loc0 = _localised(st.heard, inp.need)
+        use0 = inp.allowed & jnp.isfinite(z) & loc0[None, :]
+        pre = jnp.all(loc0) & jnp.all(st.bound + log_cells < F.WINDOW_LOG_TOL)
+        skip = (st.win, st.org, st.bound, jnp.zeros((n,), dtype), nan2, st.row,
+                jnp.asarray(False))
+        win, org, bound, ev, raw, row, ok = jax.lax.cond(
+            go & v & pre,
+            lambda: _window_epoch(cfg, prm, inp, st, z, step_m, use0, log_cells),
+            lambda: skip,
+        )
+        go = go & v & pre & ok
+        heard = st.heard | use0
+        loc = _localised(heard, inp.need)
+        raw = jnp.where(loc[:, None], raw, nan2)
+        est, smooth, started, buf = _smooth(cfg, prm, st, raw, loc)
+        est = jnp.where(loc[:, None], est, nan2)
+        lm = jax.nn.logsumexp(win.reshape(n, -1), axis=1).at[1].set(jax.nn.logsumexp(row))
+        new = dataclasses.replace(st, heard=heard, smooth=smooth, started=started, buf=buf,
+                                  win=win, org=org, bound=bound, row=row,
+                                  windowed=jnp.asarray(True))
+        new = jax.tree.map(lambda a, b: jnp.where(go, a, b), new, st)
+        nf = jnp.sum(use0, axis=1).astype(dtype)
+        return (new, go), (FilterOut(est, raw, lm, ev, nf, go), go)
+
+    k = inp.z.shape[0]
+    (st, _), (out, done) = jax.lax.scan(
+        epoch, (st, jnp.asarray(True)), (inp.z, inp.dt, k0 + jnp.arange(k), valid)
+    )
+    return st, out, jnp.sum(done)
+
+
+_scan_windows_jit = eqx.filter_jit(_scan_windows)
+
+
+def run_chunked(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, logpost0,
+                chunk: int = 64, full_chunk: int = 4):
+    """`run_filter` for `likelihood="window"` driven from the host in chunks of epochs.
+
+    Same epochs, same results as `run_filter`; while the windows hold, chunks of `chunk` epochs
+    run without the full grid in the scan's carry (`_scan_windows`); other epochs run in chunks of
+    `full_chunk` with the full grid (`_scan`). Each chunk length compiles once.
+
+    Returns:
+        (final FilterState with the full-grid `logpost`, FilterOut of all epochs).
+    """
+    if not cfg.window or cfg.n_snap:
+        return run_filter(cfg, prm, inp, logpost0)
+    n_ep = int(inp.z.shape[0])
+    st = init_state(cfg, logpost0)
+    n = logpost0.shape[0]
+    log_cells = np.log(np.maximum(np.asarray(inp.mask).reshape(n, -1).sum(1), 1))
+    outs, k = [], 0
+
+    def part(a, b, pad=0):
+        z, dt = inp.z[a:b], inp.dt[a:b]
+        if pad:
+            z = jnp.concatenate([z, jnp.full((pad,) + z.shape[1:], jnp.nan, z.dtype)])
+            dt = jnp.concatenate([dt, jnp.zeros((pad,), dt.dtype)])
+        return dataclasses.replace(inp, z=z, dt=dt)
+
+    while k < n_ep:
+        loc = np.asarray(_localised(st.heard, inp.need))
+        if loc.all() and np.all(np.asarray(st.bound) + log_cells < F.WINDOW_LOG_TOL):
+            m = min(chunk, n_ep - k)
+            valid = jnp.arange(chunk) < m
+            full = st.logpost
+            small = dataclasses.replace(st, logpost=jnp.zeros((n, 1, 1), full.dtype))
+            st2, out, done = _scan_windows_jit(cfg, prm, part(k, k + m, chunk - m), small, valid,
+                                               jnp.asarray(k))
+            done = int(done)
+            if done:
+                st = dataclasses.replace(st2, logpost=full)
+                outs.append(jax.tree.map(lambda a, d=done: a[:d], out))
+                k += done
+            if done == m:
+                continue
+        m = full_chunk if n_ep - k >= full_chunk else 1
+        st, out = _scan_jit(cfg, prm, part(k, k + m), st, jnp.asarray(k))
+        outs.append(out)
+        k += m
+    out = jax.tree.map(lambda *a: jnp.concatenate(a), *outs)
+    st = dataclasses.replace(st, logpost=_full_logpost(cfg, st), windowed=jnp.asarray(False))
+    return st, out
 
 
 def _setup(params: PGPParams, grid: G.Grid, n: int, mode: str, snaps: np.ndarray, z, dt):
@@ -693,9 +797,6 @@ def start(
     return PGPStream(cfg, prm, inp, init_state(cfg, lp0), tuple(int(i) for i in order), 0)
 
 
-_scan_jit = eqx.filter_jit(_scan)
-
-
 def advance(
     stream: PGPStream, ranges: np.ndarray, dt: np.ndarray
 ) -> tuple[PGPStream, np.ndarray]:
@@ -762,7 +863,7 @@ def run_pgp(
     if dataset.n_epochs == 0:
         raise JaxcalError(f"{dataset.name}: no epochs to calibrate from")
     cfg, prm, inp, logpost0, order = prepare(dataset, params, config, mode, snapshot_epochs)
-    st, out = run_filter(cfg, prm, inp, logpost0)
+    st, out = run_chunked(cfg, prm, inp, logpost0)
     cells = cfg.grid.cells(logpost0.dtype)
     n = logpost0.shape[0]
     lp = st.logpost.reshape(n, -1)
