@@ -196,10 +196,7 @@ def sweep_surfaces(
                         total[idx] += value[r]
             with np.errstate(invalid="ignore", divide="ignore"):
                 mean = np.where(fin > 0, total / np.maximum(fin, 1), np.nan)
-            if np.isfinite(mean).any(axis=2).any():
-                pick = np.nanargmin(np.where(np.isfinite(mean), mean, np.inf), axis=2)
-            else:
-                pick = np.zeros(shape[:2], np.int64)
+            pick = np.argmin(np.where(np.isfinite(mean), mean, np.inf), axis=2)  # best other combo
             surf = np.take_along_axis(mean, pick[..., None], axis=2)[..., 0]
             first_of = {c: np.flatnonzero(combo_id == c)[0] for c in c_vals}
             best_others = {}
