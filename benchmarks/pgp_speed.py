@@ -6,8 +6,8 @@ Prints one JSON line per (nodes, cell size):
     .venv/bin/python benchmarks/pgp_speed.py              # 12/24/48 nodes x 0.5/0.25/0.1 m
 
 Keys: nodes, epochs, cells, cell_m, window_cells (W; the windows are W x W), hypotheses (max_hyp),
-pairs (pairs with a range per epoch, mean), device, compile_s (first call - best call of the fast path,
-whose chunk programs compile on first use),
+pairs (pairs with a range per epoch, mean), device, compile_s (first call - best call of the fast
+path, whose chunk programs compile on first use),
 epochs_per_s (fast path over all `epochs`, best of `--repeats`, block_until_ready, compile apart),
 windowed_epochs, reference_epochs_per_s (the direct evaluation, `likelihood="direct"`, identical
 parameters and grid, on the first `ref_epochs` epochs), speedup (their ratio), rmse_diff_m and
@@ -68,8 +68,7 @@ def scenario(nodes: int, epochs: int):
             if all(np.hypot(*(q - p)) >= 2.0 for p in pts):
                 pts.append(q)
         ids = tuple(base.node_ids) + tuple(f"S{k:02d}" for k in range(nodes - 12))
-        ds = simulate("torgau", 0, node_ids=ids, positions=tuple(map(tuple, pts)),
-                      n_epochs=epochs)
+        ds = simulate("torgau", 0, node_ids=ids, positions=tuple(map(tuple, pts)), n_epochs=epochs)
     k = min(epochs, ds.n_epochs)
     return dataclasses.replace(ds, time=ds.time[:k], range=ds.range[:k])
 
@@ -109,8 +108,9 @@ def row(nodes, cell_m, epochs, ref_epochs, repeats, config="conf1"):
     run = jax.jit(pgp._filter)
 
     k = min(ref_epochs, ds.n_epochs)
-    cfg_d, prm_d, inp_d, lp0_d, _ = pgp.prepare(ds, dataclasses.replace(p, likelihood="direct"),
-                                                config)
+    cfg_d, prm_d, inp_d, lp0_d, _ = pgp.prepare(
+        ds, dataclasses.replace(p, likelihood="direct"), config
+    )
     assert cfg_d.grid == cfg.grid
     sub_d, sub_f = slice_inputs(inp_d, k), slice_inputs(inp, k)
     ref = run.lower(cfg_d, prm_d, sub_d, lp0_d).compile()
@@ -141,7 +141,8 @@ def row(nodes, cell_m, epochs, ref_epochs, repeats, config="conf1"):
         "speedup": round(eps / ref_eps, 1),
         "rmse_diff_m": abs(final_rmse(e_f, truth) - final_rmse(e_d, truth)),
         "max_pos_diff_m": float(np.max(np.linalg.norm(e_f[both] - e_d[both], axis=1)))
-        if both.any() else float("nan"),
+        if both.any()
+        else float("nan"),
         "loadavg": [round(x, 2) for x in os.getloadavg()],
         "cpus": os.cpu_count(),
     }

@@ -48,8 +48,13 @@ def mesh(k=10, n=6, seed=0, noise=0.05, jump=None) -> MeshDataset:
     r = (r + np.swapaxes(r, 1, 2)) / 2
     for e in range(k):
         np.fill_diagonal(r[e], np.nan)
-    return MeshDataset(name="t", node_ids=[f"n{i}" for i in range(n)], time=np.arange(k) * 0.1,
-                       range=r.astype(np.float32), truth=pos)
+    return MeshDataset(
+        name="t",
+        node_ids=[f"n{i}" for i in range(n)],
+        time=np.arange(k) * 0.1,
+        range=r.astype(np.float32),
+        truth=pos,
+    )
 
 
 def run(ds, likelihood, **kw):

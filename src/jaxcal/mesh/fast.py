@@ -89,7 +89,9 @@ def extract_window(
     return win, org, out
 
 
-def scatter_window(win: Float[Array, "w w"], org: Int[Array, " 2"], n_side: int) -> Float[Array, "n n"]:
+def scatter_window(
+    win: Float[Array, "w w"], org: Int[Array, " 2"], n_side: int
+) -> Float[Array, "n n"]:
     """Full-grid log posterior with the window's values and `-inf` elsewhere."""
     full = jnp.full((n_side, n_side), -jnp.inf, win.dtype)
     return jax.lax.dynamic_update_slice(full, win, (org[0], org[1]))

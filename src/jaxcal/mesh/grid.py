@@ -168,7 +168,9 @@ def top_k(x: Float[Array, " n"], k: int) -> tuple[Float[Array, " k"], Int[Array,
     # rank of each candidate (0: largest; ties to the lower index) by (2k)^2 comparisons, which
     # is cheaper than a float64 sort on CPU; then place each candidate at its rank
     i = jnp.arange(m)
-    before = (xc[None, :] > xc[:, None]) | ((xc[None, :] == xc[:, None]) & (i[None, :] < i[:, None]))
+    before = (xc[None, :] > xc[:, None]) | (
+        (xc[None, :] == xc[:, None]) & (i[None, :] < i[:, None])
+    )
     rank = jnp.sum(before, axis=1)
     j = jnp.zeros((m,), i.dtype).at[rank].set(i)[:k]
     return xc[j], cand[j]

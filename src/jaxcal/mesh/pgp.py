@@ -34,11 +34,15 @@ the
   each using the newest posteriors of the nodes before it (order-dependent, localises in fewer
   epochs).
 
-Defaults (`PGPParams`): 0.5 m cells, at most 8 hypotheses, `likelihood="sparse"` (pairs without a
-range are skipped), so that the direct evaluation of eq. (11) finishes the simulated 12-node,
-2,000-epoch torgau scenario on the shared 2-core CPU in 2-7 minutes (123^2-129^2 cells; the time
-depends on the machine's load). Making it fast (FFT ring convolution, windows) is a later issue:
-it can add a `likelihood` option behind `grid.node_loglik`'s signature.
+Defaults (`PGPParams`): 0.5 m cells, at most 8 hypotheses, `likelihood="window"`: the fast path
+of `fast.py`. Until every node is localised (the first few epochs) and whenever the mass could
+leave a window, an epoch is the direct evaluation on every cell; otherwise every node's epoch runs
+on a W x W window around its mass (8 m a side) and a1 on its row, with a proven bound (< e^-30)
+on the posterior mass outside, so the answers equal the direct evaluation (`likelihood="direct"`,
+kept as the reference) up to rounding. `run_pgp` drives the scan from the host in chunks
+(`run_chunked`): windowed chunks do not carry the full grid. `_filter` (one scan, used by tuning
+and sweeps) computes the same epochs. Speed: `benchmarks/pgp_speed.py`, README "PGP speed".
+`start`/`advance` feed epochs as they arrive (live calibration); chunks equal one run.
 """
 
 from __future__ import annotations
@@ -343,8 +347,16 @@ def _smooth(cfg, prm, st: FilterState, raw, loc):
     return smooth, smooth, started, buf
 
 
-def _window_epoch(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st: FilterState, z,
-                  step_m, use, log_cells):
+def _window_epoch(
+    cfg: FilterConfig,
+    prm: FilterParams,
+    inp: FilterInputs,
+    st: FilterState,
+    z,
+    step_m,
+    use,
+    log_cells,
+):
     """One jacobi epoch on the windows (`fast.py`): every node localised, posteriors in `st.win`.
 
     a1 runs on its whole row instead (`FilterState.row`).
@@ -373,8 +385,9 @@ def _window_epoch(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st: F
         post = jnp.where(m, prior + ll, -jnp.inf)
         lse = jax.nn.logsumexp(post)
         ev = lse - jax.nn.logsumexp(jnp.where(m, prior, -jnp.inf))
-        pb = F.outside_bound(vals, src_idx, new_org, grid.n_side, w, grid.cell_m, step_m,
-                             prm.sigma_v)
+        pb = F.outside_bound(
+            vals, src_idx, new_org, grid.n_side, w, grid.cell_m, step_m, prm.sigma_v
+        )
         post = post - lse
         raw = G.window_estimate(post, cells, prm.r_est)
         return post.reshape(w, w), new_org, pb - lse, ev, raw
@@ -497,8 +510,15 @@ def _scan(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st0: FilterSt
             loc0 = _localised(st.heard, inp.need)
             use0 = inp.allowed & jnp.isfinite(z) & loc0[None, :]
             pre = jnp.all(loc0) & jnp.all(st.bound + log_cells < F.WINDOW_LOG_TOL)
-            skip = (st.win, st.org, st.bound, jnp.zeros((n,), dtype), nan2, st.row,
-                    jnp.asarray(False))
+            skip = (
+                st.win,
+                st.org,
+                st.bound,
+                jnp.zeros((n,), dtype),
+                nan2,
+                st.row,
+                jnp.asarray(False),
+            )
             res = jax.lax.cond(
                 pre,
                 lambda: _window_epoch(cfg, prm, inp, st, z, step_m, use0, log_cells),
@@ -512,8 +532,18 @@ def _scan(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st0: FilterSt
                 nf = jnp.sum(use0, axis=1).astype(dtype)
                 lm = jax.nn.logsumexp(res[0].reshape(n, -1), axis=1)
                 lm = lm.at[1].set(jax.nn.logsumexp(res[5]))
-                return (lp_full, st.heard | use0, res[3], nf, res[4], res[0], res[1], res[2],
-                        res[5], lm)
+                return (
+                    lp_full,
+                    st.heard | use0,
+                    res[3],
+                    nf,
+                    res[4],
+                    res[0],
+                    res[1],
+                    res[2],
+                    res[5],
+                    lm,
+                )
 
             def take_full(lp_full):
                 return full_epoch(dataclasses.replace(st, logpost=lp_full), z, step_m)
@@ -536,7 +566,9 @@ def _scan(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st0: FilterSt
             hit = inp.snap_at == k
             snaps = jax.lax.cond(
                 jnp.any(hit),
-                lambda: jnp.where(hit[:, None, None, None], _full_logpost(cfg, new)[None], st.snaps),
+                lambda: jnp.where(
+                    hit[:, None, None, None], _full_logpost(cfg, new)[None], st.snaps
+                ),
                 lambda: st.snaps,
             )
             new = dataclasses.replace(new, snaps=snaps)
@@ -561,8 +593,9 @@ run_filter = eqx.filter_jit(_filter)
 _scan_jit = eqx.filter_jit(_scan)
 
 
-def _scan_windows(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st: FilterState, valid,
-                  k0):
+def _scan_windows(
+    cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st: FilterState, valid, k0
+):
     """Windowed epochs only, without the full grid in the carry (its copies cost O(cells) per
     epoch). Stops (state frozen) at the first epoch that is not `valid` or cannot run on the
     windows; returns (state, FilterOut, epochs done). `st.logpost` is not read."""
@@ -579,8 +612,7 @@ def _scan_windows(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st: F
         loc0 = _localised(st.heard, inp.need)
         use0 = inp.allowed & jnp.isfinite(z) & loc0[None, :]
         pre = jnp.all(loc0) & jnp.all(st.bound + log_cells < F.WINDOW_LOG_TOL)
-        skip = (st.win, st.org, st.bound, jnp.zeros((n,), dtype), nan2, st.row,
-                jnp.asarray(False))
+        skip = (st.win, st.org, st.bound, jnp.zeros((n,), dtype), nan2, st.row, jnp.asarray(False))
         win, org, bound, ev, raw, row, ok = jax.lax.cond(
             go & v & pre,
             lambda: _window_epoch(cfg, prm, inp, st, z, step_m, use0, log_cells),
@@ -593,9 +625,18 @@ def _scan_windows(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st: F
         est, smooth, started, buf = _smooth(cfg, prm, st, raw, loc)
         est = jnp.where(loc[:, None], est, nan2)
         lm = jax.nn.logsumexp(win.reshape(n, -1), axis=1).at[1].set(jax.nn.logsumexp(row))
-        new = dataclasses.replace(st, heard=heard, smooth=smooth, started=started, buf=buf,
-                                  win=win, org=org, bound=bound, row=row,
-                                  windowed=jnp.asarray(True))
+        new = dataclasses.replace(
+            st,
+            heard=heard,
+            smooth=smooth,
+            started=started,
+            buf=buf,
+            win=win,
+            org=org,
+            bound=bound,
+            row=row,
+            windowed=jnp.asarray(True),
+        )
         new = jax.tree.map(lambda a, b: jnp.where(go, a, b), new, st)
         nf = jnp.sum(use0, axis=1).astype(dtype)
         return (new, go), (FilterOut(est, raw, lm, ev, nf, go), go)
@@ -610,8 +651,14 @@ def _scan_windows(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st: F
 _scan_windows_jit = eqx.filter_jit(_scan_windows)
 
 
-def run_chunked(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, logpost0,
-                chunk: int = 64, full_chunk: int = 4):
+def run_chunked(
+    cfg: FilterConfig,
+    prm: FilterParams,
+    inp: FilterInputs,
+    logpost0,
+    chunk: int = 64,
+    full_chunk: int = 4,
+):
     """`run_filter` for `likelihood="window"` driven from the host in chunks of epochs.
 
     Same epochs, same results as `run_filter`; while the windows hold, chunks of `chunk` epochs
@@ -643,8 +690,9 @@ def run_chunked(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, logpost
             valid = jnp.arange(chunk) < m
             full = st.logpost
             small = dataclasses.replace(st, logpost=jnp.zeros((n, 1, 1), full.dtype))
-            st2, out, done = _scan_windows_jit(cfg, prm, part(k, k + m, chunk - m), small, valid,
-                                               jnp.asarray(k))
+            st2, out, done = _scan_windows_jit(
+                cfg, prm, part(k, k + m, chunk - m), small, valid, jnp.asarray(k)
+            )
             done = int(done)
             if done:
                 st = dataclasses.replace(st2, logpost=full)
@@ -797,9 +845,7 @@ def start(
     return PGPStream(cfg, prm, inp, init_state(cfg, lp0), tuple(int(i) for i in order), 0)
 
 
-def advance(
-    stream: PGPStream, ranges: np.ndarray, dt: np.ndarray
-) -> tuple[PGPStream, np.ndarray]:
+def advance(stream: PGPStream, ranges: np.ndarray, dt: np.ndarray) -> tuple[PGPStream, np.ndarray]:
     """Feed the next epochs to a running filter.
 
     Advancing in chunks gives the same estimates as one run over all epochs (each chunk length
@@ -818,7 +864,9 @@ def advance(
     d = np.asarray(dt, dtype=np.float64)
     n = len(stream.order)
     if r.ndim != 3 or r.shape[1:] != (n, n) or d.shape != r.shape[:1]:
-        raise JaxcalError(f"advance: need ranges (k, {n}, {n}) and dt (k,), got {r.shape}, {d.shape}")
+        raise JaxcalError(
+            f"advance: need ranges (k, {n}, {n}) and dt (k,), got {r.shape}, {d.shape}"
+        )
     order = np.asarray(stream.order)
     z = symmetric_ranges(r)[:, order][:, :, order]
     dtype = stream.state.logpost.dtype
@@ -826,7 +874,9 @@ def advance(
     k0 = jnp.asarray(stream.epochs, jnp.int32)  # an array: no recompilation per chunk
     st, out = _scan_jit(stream.cfg, stream.prm, inp, stream.state, k0)
     est = np.asarray(out.estimate, dtype=np.float64)[:, np.argsort(order)]
-    new = PGPStream(stream.cfg, stream.prm, stream.inp, st, stream.order, stream.epochs + r.shape[0])
+    new = PGPStream(
+        stream.cfg, stream.prm, stream.inp, st, stream.order, stream.epochs + r.shape[0]
+    )
     return new, est
 
 
