@@ -77,7 +77,8 @@ class Grid(eqx.Module):
     def axis(self, dtype=None) -> Float[Array, " n"]:
         """(n,) cell-centre coordinates along one axis [m]."""
         return (
-            jnp.arange(self.n_side, dtype=dtype or jnp.result_type(float)) - self.n_half
+            # canonicalize: a float64 request without x64 is float32, silently (no UserWarning)
+            jnp.arange(self.n_side, dtype=jax.dtypes.canonicalize_dtype(dtype or float)) - self.n_half
         ) * self.cell_m
 
     def cells(self, dtype=None) -> Float[Array, "cells 2"]:
