@@ -677,21 +677,30 @@ def sweep_surface(
     s = np.asarray(sigma_r, dtype=np.float64)
     t = np.asarray(tau, dtype=np.float64)
     r = np.asarray(rmse, dtype=np.float64)
+    from matplotlib.colors import LogNorm, Normalize
+
     fig = _figure(6.4, 4.8)
     ax = fig.subplots()
     ax.set_facecolor("0.85")
+    fin = r[np.isfinite(r)]
+    # a few failed corners (RMSE of metres) would flatten the interesting low region: log scale
+    wide = fin.size > 0 and fin.min() > 0 and fin.max() > 5 * fin.min()
+    norm = (
+        LogNorm(fin.min(), fin.max())
+        if wide
+        else (Normalize() if not fin.size else Normalize(fin.min(), fin.max()))
+    )
     im = ax.pcolormesh(
         np.arange(s.size + 1) - 0.5,
         np.arange(t.size + 1) - 0.5,
         r.T,
         cmap="viridis",
+        norm=norm,
         shading="flat",
     )
     ax.set_xticks(range(s.size), [f"{v:g}" for v in s], rotation=45 if s.size > 8 else 0)
     ax.set_yticks(range(t.size), [f"{v:g}" for v in t])
     if r.size <= 100:  # small grids: the numbers themselves, dark on light cells and vice versa
-        fin = r[np.isfinite(r)]
-        mid = 0.5 * (fin.min() + fin.max()) if fin.size else 0.0  # viridis: dark below the middle
         best = np.nanargmin(r) if fin.size else -1
         for k, ((i, j), v) in enumerate(np.ndenumerate(r)):
             ax.text(
@@ -701,7 +710,7 @@ def sweep_surface(
                 ha="center",
                 va="center",
                 fontsize=8 if r.size > 30 else 9,
-                color="0.3" if not np.isfinite(v) else ("white" if v < mid else "black"),
+                color="0.3" if not np.isfinite(v) else ("white" if norm(v) < 0.5 else "black"),
             )
     if np.isfinite(r).any():
         i, j = np.unravel_index(np.nanargmin(r), r.shape)
@@ -718,5 +727,7 @@ def sweep_surface(
     ax.set_xlabel("sigma_r [m]")
     ax.set_ylabel("tau (probability-mass fraction)")
     ax.set_title(title or f"{label} over the sweep")
-    fig.colorbar(im, ax=ax, label=label)
+    cb = fig.colorbar(im, ax=ax, label=label)
+    if wide:
+        _plain_log_ticks(cb, fin.min(), fin.max())
     return fig
