@@ -68,7 +68,7 @@ from jaxtyping import Array, Bool, Float
 from jaxcal.data import Result
 from jaxcal.errors import JaxcalError
 from jaxcal.params import with_overrides
-from jaxcal.trajectory.ls import finish, in_float64, is_planar
+from jaxcal.trajectory.ls import TrajectoryParams, finish, in_float64, is_planar
 
 __all__ = [
     "GPParams",
@@ -88,7 +88,7 @@ __all__ = [
 ]
 
 
-class GPParams(eqx.Module):
+class GPParams(TrajectoryParams):
     """Parameters of `gp` (defaults).
 
     Attributes:
@@ -124,16 +124,6 @@ class GPParams(eqx.Module):
     tol_m: float = 0.005
     margin_m: float = 5.0
     stages: int = 2
-    min_ranges: int = 10
-    planar_tol_m: float = 0.3
-    planar_ratio: float = 0.05
-    side: float = 1.0
-    order: int = 4
-    knot_dt_s: float = 0.0
-    max_gap_s: float = 0.0
-    time_offset_s: float = 0.0
-    estimate_offset: bool = False
-    max_offset_s: float = 1.0
 
 
 # ---------------------------------------------------------------------------------------- kernel

@@ -36,8 +36,8 @@ def in_float64(fn):
     return wrapper
 
 
-class LSParams(eqx.Module):
-    """Parameters of `ls` (defaults).
+class TrajectoryParams(eqx.Module):
+    """Settings shared by every trajectory method (`ls`, `nls`, `gp`): poses, planarity, clock offset.
 
     Attributes:
         min_ranges: anchors with fewer valid ranges get no estimate (NaN).
@@ -58,6 +58,10 @@ class LSParams(eqx.Module):
     time_offset_s: float = 0.0
     estimate_offset: bool = False
     max_offset_s: float = 1.0
+
+
+class LSParams(TrajectoryParams):
+    """Parameters of `ls`: only the shared `TrajectoryParams` settings."""
 
 
 def _solve(a_mat, b_vec, mask):

@@ -19,12 +19,12 @@ import optimistix as optx
 from jaxcal.data import Result
 from jaxcal.errors import JaxcalError
 from jaxcal.params import with_overrides
-from jaxcal.trajectory.ls import finish, in_float64, multilaterate
+from jaxcal.trajectory.ls import TrajectoryParams, finish, in_float64, multilaterate
 
 __all__ = ["NLSParams", "solve_anchor", "calibrate"]
 
 
-class NLSParams(eqx.Module):
+class NLSParams(TrajectoryParams):
     """Parameters of `nls` (defaults).
 
     Attributes:
@@ -43,16 +43,6 @@ class NLSParams(eqx.Module):
     bias: bool = True
     n_irls: int = 6
     max_steps: int = 100
-    min_ranges: int = 10
-    planar_tol_m: float = 0.3
-    planar_ratio: float = 0.05
-    side: float = 1.0
-    order: int = 4
-    knot_dt_s: float = 0.0
-    max_gap_s: float = 0.0
-    time_offset_s: float = 0.0
-    estimate_offset: bool = False
-    max_offset_s: float = 1.0
 
 
 def _dist(pos, a):
