@@ -11,6 +11,7 @@ from conftest import assert_one_line_error, run_cli
 from jaxcal.data import MeshDataset
 from jaxcal.errors import JaxcalError
 from jaxcal.io import hdf5
+from jaxcal.mesh import grid as G
 from jaxcal.mesh import pgp
 from jaxcal.mesh.frame import to_frame
 from jaxcal.mesh.pgp import PGPParams, prepare, run_pgp
@@ -90,6 +91,40 @@ def test_matches_loop_reference(order, likelihood):
     np.testing.assert_array_equal(np.isnan(info.raw_track), np.isnan(ref["raw"]))
     np.testing.assert_allclose(info.raw_track, ref["raw"], atol=1e-9)
     assert np.isfinite(res.position).all()
+
+
+@pytest.mark.parametrize("likelihood", ["sparse", "window"])
+def test_mixture_range_model_matches_loop_reference(likelihood):
+    """range_model="mixture" (eq. 11 with the LOS/NLOS kernel) equals the loops' written-out EMG."""
+    ds = make_mesh(noise=0.2, missing=0.2, seed=3)
+    mix = dict(range_model="mixture", nlos_weight=0.3, nlos_mean_m=0.8, p_out=0.02)
+    p = PGPParams(**SMALL, likelihood=likelihood, **mix)
+    _, info = run_pgp(ds, p)
+    cfg, _, inp, _, _ = prepare(ds, p, None)
+    kw = dict(
+        top_k=cfg.top_k, n_hyp=cfg.n_hyp, tau=p.tau, r_est=p.r_est, sigma_r=p.sigma_r, v=p.v,
+        sigma_v=p.sigma_v, p_out=p.p_out, min_refs=p.min_refs,
+    )
+    args = (np.asarray(inp.z), np.asarray(inp.dt), cfg.grid.n_half, p.cell_m)
+    ref = run_reference(*args, nlos_weight=0.3, nlos_mean_m=0.8, **kw)
+    np.testing.assert_allclose(info.posterior, ref["posterior"], atol=1e-9)
+    np.testing.assert_allclose(info.raw_track, ref["raw"], atol=1e-9)
+    gauss = run_reference(*args, **kw)  # the model did reach the filter
+    assert np.abs(info.posterior - gauss["posterior"]).max() > 1e-3
+
+
+def test_range_kernel_is_the_mixture_density_times_a_constant():
+    from scipy import stats
+
+    e = np.linspace(-3.0, 12.0, 301)
+    s, w, mean = 0.3, 0.25, 1.5
+    got = np.exp(np.asarray(G.range_kernel_log(jnp.asarray(e), s, (w, mean))))
+    dens = (1 - w) * stats.norm.pdf(e, scale=s) + w * stats.exponnorm.pdf(e, mean / s, scale=s)
+    np.testing.assert_allclose(got, dens * s * np.sqrt(2 * np.pi), rtol=1e-10, atol=1e-300)
+    # weight 0 is the paper's Gaussian exactly; no mixture argument is the Gaussian too
+    g0 = np.asarray(G.range_kernel_log(jnp.asarray(e), s, (0.0, mean)))
+    np.testing.assert_array_equal(g0, np.asarray(G.range_kernel_log(jnp.asarray(e), s)))
+    np.testing.assert_allclose(g0, -0.5 * (e / s) ** 2, rtol=1e-12)
 
 
 def test_moving_nodes_match_reference():
@@ -219,7 +254,16 @@ def test_snapshots_and_uncertainty_out():
 
 
 @pytest.mark.parametrize(
-    "key, value", [("tau", 0.0), ("sigma_r", -1.0), ("update_order", "random"), ("top_k", 0)]
+    "key, value",
+    [
+        ("tau", 0.0),
+        ("sigma_r", -1.0),
+        ("update_order", "random"),
+        ("top_k", 0),
+        ("range_model", "student"),
+        ("nlos_weight", 1.0),
+        ("nlos_mean_m", 0.0),
+    ],
 )
 def test_bad_parameters_are_clear_errors(key, value):
     ds = make_mesh(n=4, k=2)

@@ -303,6 +303,7 @@ def pair_loglik(
     z: Float[Array, ""],
     sigma: Float[Array, ""],
     p_out: Float[Array, ""],
+    nlos: tuple[Float[Array, ""], Float[Array, ""]] | None = None,
 ) -> Float[Array, " cells"]:
     """Log of one factor of eq. (11): `log sum_l w_l exp(-(|g - g_l| - z)^2 / (2 sigma^2))` at
     every cell.
@@ -311,9 +312,13 @@ def pair_loglik(
     robust
     option for outlier ranges; `p_out = 0` is the paper's eq. 11).
 
+    With `nlos = (w, mean_m)` the Gaussian kernel is replaced by the NLOS-aware mixture of
+    `range_kernel_log` (skewed towards long ranges); `None` is the paper's Gaussian.
+
     Args:
         cells: (C, 2) [m]. hyp_pos: (H, 2) [m]. hyp_logw: (H,) normalised log weights.
         z: measured range [m]. sigma: range std [m]. p_out: floor weight in [0, 1).
+        nlos: optional (NLOS weight in [0, 1), NLOS mean excess [m]).
 
     Returns:
         (C,) log likelihood.
@@ -322,8 +327,35 @@ def pair_loglik(
     dx = cells[None, :, 0] - hyp_pos[:, 0, None]
     dy = cells[None, :, 1] - hyp_pos[:, 1, None]
     d = _safe_sqrt(dx * dx + dy * dy)
-    ll = jax.nn.logsumexp(hyp_logw[:, None] - 0.5 * jnp.square((d - z) * (1.0 / sigma)), axis=0)
+    ll = jax.nn.logsumexp(hyp_logw[:, None] + range_kernel_log(z - d, sigma, nlos), axis=0)
     return jnp.logaddexp(jnp.log1p(-p_out) + ll, jnp.log(p_out))
+
+
+def range_kernel_log(
+    e: Float[Array, "*s"],
+    sigma: Float[Array, ""],
+    nlos: tuple[Float[Array, ""], Float[Array, ""]] | None = None,
+) -> Float[Array, "*s"]:
+    """Log of the range kernel of eq. (11) at range errors `e = z - |g - g_l|` [m].
+
+    Gaussian (`nlos=None`, the paper): `-e^2 / (2 sigma^2)` (peak 1, no normalising constant).
+    Mixture (`nlos = (w, mean_m)`): `(1 - w) exp(-e^2 / 2 sigma^2) + w sigma sqrt(2 pi) EMG(e)`,
+    EMG = the LOS Gaussian convolved with a positive exponential of mean `mean_m` (NLOS ranges
+    are long, never short). Both are the density of `e` times `sigma sqrt(2 pi)`, so they
+    integrate to the same constant and `tune.neg_log_predictive` holds for either; `w = 0` is the
+    Gaussian exactly.
+    """
+    q = -0.5 * jnp.square(e * (1.0 / sigma))
+    if nlos is None:
+        return q
+    w, mean_m = nlos
+    lam = 1.0 / mean_m
+    ls = lam * sigma
+    log_emg = (
+        0.5 * math.log(2 * math.pi) + jnp.log(ls) + 0.5 * ls * ls - lam * e
+        + jax.scipy.special.log_ndtr(e * (1.0 / sigma) - ls)
+    )
+    return jnp.logaddexp(jnp.log1p(-w) + q, jnp.log(w) + log_emg)
 
 
 def node_loglik(
@@ -334,6 +366,7 @@ def node_loglik(
     z_i: Float[Array, " nodes"],
     use_i: Bool[Array, " nodes"],
     p_out: Float[Array, ""],
+    nlos: tuple[Float[Array, ""], Float[Array, ""]] | None = None,
 ) -> Float[Array, " cells"]:
     """Log likelihood eq. (11) of one node over the grid: the sum over neighbours j with `use_i[j]`.
 
@@ -343,14 +376,14 @@ def node_loglik(
         cells: (C, 2) [m]. hyp_pos, hyp_logw: (N, H, 2), (N, H) hypotheses of every node.
         hyp_sigma: (N,) range std to use with each neighbour [m]. z_i: (N,) ranges to the
         neighbours [m]
-            (NaN missing). use_i: (N,) which neighbours contribute. p_out: see `pair_loglik`.
+            (NaN missing). use_i: (N,) which neighbours contribute. p_out, nlos: see `pair_loglik`.
 
     Returns:
         (C,) log likelihood (0 where no neighbour contributes).
     """
     zs = jnp.where(use_i, z_i, 0.0)
-    per = jax.vmap(pair_loglik, in_axes=(None, 0, 0, 0, 0, None))(
-        cells, hyp_pos, hyp_logw, zs, hyp_sigma, p_out
+    per = jax.vmap(pair_loglik, in_axes=(None, 0, 0, 0, 0, None, None))(
+        cells, hyp_pos, hyp_logw, zs, hyp_sigma, p_out, nlos
     )
     return jnp.sum(jnp.where(use_i[:, None], per, 0.0), axis=0)
 
@@ -363,6 +396,7 @@ def node_loglik_sparse(
     z_i: Float[Array, " nodes"],
     use_i: Bool[Array, " nodes"],
     p_out: Float[Array, ""],
+    nlos: tuple[Float[Array, ""], Float[Array, ""]] | None = None,
 ) -> Float[Array, " cells"]:
     """`node_loglik` with the same arguments and result, skipping the work of neighbours without a
     range
@@ -372,7 +406,9 @@ def node_loglik_sparse(
 
     def neighbour(j, acc):
         def add(acc):
-            return acc + pair_loglik(cells, hyp_pos[j], hyp_logw[j], z_i[j], hyp_sigma[j], p_out)
+            return acc + pair_loglik(
+                cells, hyp_pos[j], hyp_logw[j], z_i[j], hyp_sigma[j], p_out, nlos
+            )
 
         return jax.lax.cond(use_i[j], add, lambda a: a, acc)
 

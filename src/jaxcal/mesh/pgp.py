@@ -116,6 +116,16 @@ class PGPParams(eqx.Module):
             posterior (two ranges only): simulated torgau conf2 runs 98 % of its epochs windowed
             at 10 m and 12 m, ~70 % at 8 m; a window too small for the data only makes more
             epochs fall back to the full grid, never changes the answer).
+        range_model: the range kernel of eq. (11): "gaussian" (the paper) or "mixture" (NLOS-aware,
+            `grid.range_kernel_log`: a LOS Gaussian of std sigma_r plus, with weight
+            `nlos_weight`, the Gaussian convolved with a positive exponential of mean
+            `nlos_mean_m`, so ranges longer than the geometry are explained as NLOS while short
+            ones stay unlikely; `p_out` still adds the uniform floor).
+        nlos_weight: NLOS share of the mixture in [0, 1) (only with range_model="mixture").
+            Default 0.2: the paper's Table I has ~24 % NLOS ranges in its hall.
+        nlos_mean_m: mean NLOS excess range [m] of the mixture (default 1 m: Table I's NLOS
+            median error 0.69 m; its mean 3.78 m is driven by rare long outliers, which `p_out`
+            covers).
     """
 
     cell_m: float = 0.5
@@ -137,9 +147,16 @@ class PGPParams(eqx.Module):
     p_out: float = 0.05
     likelihood: str = "window"
     window_m: float = 10.0
+    range_model: str = "gaussian"
+    nlos_weight: float = 0.2
+    nlos_mean_m: float = 1.0
 
 
 LIKELIHOODS = ("window", "direct", "sparse", "dense")
+RANGE_MODELS = ("gaussian", "mixture")
+# PGPParams fields that are arrays in `FilterParams` (sweeps and tuning change them without
+# recompiling), in FilterParams' order
+NUMERIC = ("tau", "r_est", "sigma_r", "v", "sigma_v", "alpha", "p_out", "nlos_weight", "nlos_mean_m")
 
 
 def _validate(p: PGPParams) -> None:
@@ -157,6 +174,15 @@ def _validate(p: PGPParams) -> None:
     need(0 < p.tau <= 1, f"tau: must be in (0, 1], got {p.tau!r}")
     need(0 < p.alpha <= 1, f"alpha: must be in (0, 1], got {p.alpha!r}")
     need(0 <= p.p_out < 1, f"p_out: must be in [0, 1), got {p.p_out!r}")
+    need(
+        p.range_model in RANGE_MODELS,
+        f"range_model: one of {', '.join(RANGE_MODELS)}; got {p.range_model!r}",
+    )
+    need(0 <= p.nlos_weight < 1, f"nlos_weight: must be in [0, 1), got {p.nlos_weight!r}")
+    need(
+        math.isfinite(p.nlos_mean_m) and p.nlos_mean_m > 0,
+        f"nlos_mean_m: must be a positive number, got {p.nlos_mean_m!r}",
+    )
     need(p.v >= 0, f"v: must be >= 0, got {p.v!r}")
     for k in ("top_k", "max_hyp", "median_window", "min_refs"):
         need(getattr(p, k) >= 1, f"{k}: must be an integer >= 1, got {getattr(p, k)!r}")
@@ -195,6 +221,8 @@ class FilterConfig(eqx.Module):
     remat: bool = eqx.field(static=True, default=False)  # jax.checkpoint the epoch (gradients)
     # W of the windowed epochs (`fast.py`); 0: every epoch on the full grid
     window: int = eqx.field(static=True, default=0)
+    # range kernel of eq. (11): "gaussian" or "mixture" (`grid.range_kernel_log`)
+    range_model: str = eqx.field(static=True, default="gaussian")
 
 
 class FilterParams(eqx.Module):
@@ -207,6 +235,8 @@ class FilterParams(eqx.Module):
     sigma_v: Float[Array, ""]
     alpha: Float[Array, ""]
     p_out: Float[Array, ""]
+    nlos_weight: Float[Array, ""]
+    nlos_mean_m: Float[Array, ""]
     tau_temp: Float[Array, ""] | None = None  # temperature of `select="soft"` (unused when hard)
 
 
@@ -318,6 +348,11 @@ def _hypotheses(
     return est[:, None, :], jnp.zeros(est.shape[:1] + (1,), est.dtype), sig
 
 
+def _nlos(cfg: FilterConfig, prm: FilterParams):
+    """The `nlos` argument of `grid.pair_loglik` for the configured range model."""
+    return (prm.nlos_weight, prm.nlos_mean_m) if cfg.range_model == "mixture" else None
+
+
 def _node_update(cfg, prm, cells, logp_i, mask_i, loc_i, hyps, z_i, use_i, step_m):
     """One node's epoch: motion update (if localised), eq. (11), eq. (12) posterior (C,)."""
     prior = jax.lax.cond(
@@ -327,7 +362,7 @@ def _node_update(cfg, prm, cells, logp_i, mask_i, loc_i, hyps, z_i, use_i, step_
         logp_i,
     )
     lik = G.node_loglik if cfg.likelihood == "dense" else G.node_loglik_sparse
-    ll = lik(cells, hyps[0], hyps[1], hyps[2], z_i, use_i, prm.p_out)
+    ll = lik(cells, hyps[0], hyps[1], hyps[2], z_i, use_i, prm.p_out, _nlos(cfg, prm))
     post = jnp.where(mask_i, prior + ll, -jnp.inf)
     lse = jax.nn.logsumexp(post)
     return post - lse, lse - jax.nn.logsumexp(jnp.where(mask_i, prior, -jnp.inf))
@@ -375,6 +410,7 @@ def _window_epoch(
     row_cells = jnp.stack([grid.axis(dtype), jnp.zeros((grid.n_side,), dtype)], axis=-1)
     h1 = _hypotheses(cfg, prm, st.row[None], row_cells)
     hyps = tuple(h.at[1].set(h1_[0]) for h, h1_ in zip(hyps, h1, strict=True))
+    nlos = _nlos(cfg, prm)
 
     def node(win_i, org_i, wc_i, mask_i, z_i, use_i):
         vals, idx = G.top_k(win_i, cfg.top_k)
@@ -382,7 +418,7 @@ def _window_epoch(
         new_org = F.window_origin(src_idx[0, 0] * grid.n_side + src_idx[0, 1], grid.n_side, w)
         cells = F.window_cells(new_org, grid, w, dtype)
         prior = F.predict_window(vals, wc_i[idx], cells, step_m, prm.sigma_v)
-        ll = G.node_loglik(cells, hyps[0], hyps[1], hyps[2], z_i, use_i, prm.p_out)
+        ll = G.node_loglik(cells, hyps[0], hyps[1], hyps[2], z_i, use_i, prm.p_out, nlos)
         m = F.window_mask(mask_i, new_org, w)
         post = jnp.where(m, prior + ll, -jnp.inf)
         lse = jax.nn.logsumexp(post)
@@ -399,7 +435,7 @@ def _window_epoch(
     vals, idx = G.top_k(st.row, cfg.top_k)
     d = G.safe_norm(row_cells[None, :, :] - row_cells[idx][:, None, :])
     prior = jax.nn.logsumexp(vals[:, None] - 0.5 * jnp.square((d - step_m) / prm.sigma_v), axis=0)
-    ll = G.node_loglik(row_cells, hyps[0], hyps[1], hyps[2], z[1], use[1], prm.p_out)
+    ll = G.node_loglik(row_cells, hyps[0], hyps[1], hyps[2], z[1], use[1], prm.p_out, nlos)
     m = inp.mask[1, :, grid.n_half]
     post = jnp.where(m, prior + ll, -jnp.inf)
     lse = jax.nn.logsumexp(post)
@@ -741,11 +777,12 @@ def _setup(params: PGPParams, grid: G.Grid, n: int, mode: str, snaps: np.ndarray
         n_snap=int(snaps.size),
         likelihood="direct" if params.likelihood in ("window", "sparse") else params.likelihood,
         window=window,
+        range_model=params.range_model,
     )
     prm = FilterParams(
         *(
             jnp.asarray(getattr(params, f), ftype)
-            for f in ("tau", "r_est", "sigma_r", "v", "sigma_v", "alpha", "p_out")
+            for f in NUMERIC
         )
     )
     inp = FilterInputs(

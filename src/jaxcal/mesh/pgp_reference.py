@@ -21,6 +21,18 @@ def _gauss(x: float, s: float) -> float:
     return math.exp(-0.5 * (x / s) ** 2)
 
 
+def _kernel(e: float, s: float, nlos_weight: float, nlos_mean_m: float) -> float:
+    """Range kernel of eq. (11) at range error e = z - distance: the Gaussian, or with
+    `nlos_weight > 0` the LOS/NLOS mixture `(1 - w) gauss + w s sqrt(2 pi) EMG(e)`, where the EMG
+    density (Gaussian(0, s) convolved with an exponential of mean `nlos_mean_m`) is written out."""
+    if nlos_weight == 0.0:
+        return _gauss(e, s)
+    lam = 1.0 / nlos_mean_m
+    phi = 0.5 * math.erfc(-(e / s - lam * s) / math.sqrt(2.0))
+    emg = lam * math.exp(0.5 * (lam * s) ** 2 - lam * e) * phi
+    return (1.0 - nlos_weight) * _gauss(e, s) + nlos_weight * s * math.sqrt(2 * math.pi) * emg
+
+
 def run_reference(
     z: np.ndarray,
     dt: np.ndarray,
@@ -35,6 +47,8 @@ def run_reference(
     v: float,
     sigma_v: float,
     p_out: float = 0.0,
+    nlos_weight: float = 0.0,
+    nlos_mean_m: float = 1.0,
     update_order: str = "jacobi",
     mode: str = "pgp",
     min_refs: int = 3,
@@ -150,7 +164,7 @@ def run_reference(
             for g, (_, x, y) in enumerate(cells):
                 acc = 0.0
                 for hx, hy, w in hs:
-                    acc += w * _gauss(math.hypot(x - hx, y - hy) - zk[i, j], s)
+                    acc += w * _kernel(zk[i, j] - math.hypot(x - hx, y - hy), s, nlos_weight, nlos_mean_m)
                 lik[g] *= (1.0 - p_out) * acc + p_out
         post = prior * lik  # eq. (12)
         return post / post.sum(), used
