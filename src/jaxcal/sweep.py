@@ -2,9 +2,10 @@
 
 A sweep is a list of runs (`plan`): every scenario (a simulated scenario with its seeds, or a
 dataset) crossed with the product of the swept parameter values. Swept parameters are the numeric
-fields of `pgp.FilterParams` (sigma_r, sigma_v, tau, r_est, v, alpha, p_out, nlos_weight, nlos_mean_m): they are arrays, so a
-whole batch of values is one `jax.vmap` of the jitted filter, and new values never recompile. Fixed
-parameters (`cell_m`, `top_k`, `max_hyp`, ...) are static: one compilation per group.
+fields of `pgp.FilterParams` (sigma_r, sigma_v, tau, r_est, v, alpha, p_out, nlos_weight,
+nlos_mean_m): they are arrays, so a whole batch of values is one `jax.vmap` of the jitted
+filter, and new values never recompile. Fixed parameters (`cell_m`, `top_k`, `max_hyp`, ...)
+are static: one compilation per group.
 
 Runs whose datasets have the same number of nodes and epochs form a group and run on one common
 grid: the largest of their `prepare` grids (a dataset whose own grid is smaller gets a few more
@@ -64,7 +65,9 @@ __all__ = [
     "execute",
 ]
 
-SWEEPABLE = ("tau", "r_est", "sigma_r", "v", "sigma_v", "alpha", "p_out", "nlos_weight", "nlos_mean_m")
+SWEEPABLE = (
+    "tau", "r_est", "sigma_r", "v", "sigma_v", "alpha", "p_out", "nlos_weight", "nlos_mean_m"
+)
 METRICS = ("rmse_m", "final_rmse_m", "availability", "localised", "nlpl")
 
 

@@ -156,7 +156,9 @@ LIKELIHOODS = ("window", "direct", "sparse", "dense")
 RANGE_MODELS = ("gaussian", "mixture")
 # PGPParams fields that are arrays in `FilterParams` (sweeps and tuning change them without
 # recompiling), in FilterParams' order
-NUMERIC = ("tau", "r_est", "sigma_r", "v", "sigma_v", "alpha", "p_out", "nlos_weight", "nlos_mean_m")
+NUMERIC = (
+    "tau", "r_est", "sigma_r", "v", "sigma_v", "alpha", "p_out", "nlos_weight", "nlos_mean_m"
+)
 
 
 def _validate(p: PGPParams) -> None:

@@ -164,7 +164,8 @@ def run_reference(
             for g, (_, x, y) in enumerate(cells):
                 acc = 0.0
                 for hx, hy, w in hs:
-                    acc += w * _kernel(zk[i, j] - math.hypot(x - hx, y - hy), s, nlos_weight, nlos_mean_m)
+                    e = zk[i, j] - math.hypot(x - hx, y - hy)
+                    acc += w * _kernel(e, s, nlos_weight, nlos_mean_m)
                 lik[g] *= (1.0 - p_out) * acc + p_out
         post = prior * lik  # eq. (12)
         return post / post.sum(), used
