@@ -72,11 +72,15 @@ def test_soft_cut_reduces_to_hard_rule():
     assert np.isfinite(np.asarray(lw_warm)).all()
 
 
-@pytest.mark.parametrize("kind", ["truth", "evidence"])
-def test_gradient_matches_finite_differences(kind):
+@pytest.mark.parametrize("kind, model", [("truth", "gaussian"), ("evidence", "gaussian"),
+                                         ("evidence", "mixture")])
+def test_gradient_matches_finite_differences(kind, model):
     ds = make_mesh()
-    prob, _ = T.make_problem(ds, PGPParams(**SMALL), None, kind, tau_temp=0.1, est_temp=5.0)
-    theta = T.theta_of(0.8, 0.7, 0.6, jnp.float64)
+    p = PGPParams(**SMALL, range_model=model)
+    prob, _ = T.make_problem(ds, p, None, kind, tau_temp=0.1, est_temp=5.0)
+    mix = {"nlos_weight": 0.3, "nlos_mean_m": 1.2} if model == "mixture" else {}
+    theta = T.theta_of(0.8, 0.7, 0.6, jnp.float64, **mix)
+    assert theta.shape == (len(T.tuned_names(model)),)
     f = jax.jit(T.objective)
     g = np.asarray(jax.jit(jax.grad(T.objective))(theta, prob))
     assert np.all(np.isfinite(g)) and np.any(np.abs(g) > 1e-6)
@@ -84,7 +88,7 @@ def test_gradient_matches_finite_differences(kind):
     fd = np.array(
         [
             (float(f(theta.at[i].add(h), prob)) - float(f(theta.at[i].add(-h), prob))) / (2 * h)
-            for i in range(3)
+            for i in range(theta.shape[0])
         ]
     )
     # central differences in float64: truncation ~h^2, rounding ~1e-16 / h
@@ -108,6 +112,21 @@ def test_tune_lowers_objective_and_hard_rule_is_reported():
     assert set(res.params) == {"sigma_r", "sigma_v", "tau"} and 0 < res.params["tau"] < 1
     for d in (res.hard_before, res.hard_after):
         assert set(d) == {"rmse_m", "final_rmse_m", "nlpl"} and np.isfinite(d["nlpl"])
+
+
+def test_theta_round_trip_with_the_mixture_parameters():
+    theta = T.theta_of(0.4, 0.2, 0.85, jnp.float64, nlos_weight=0.15, nlos_mean_m=2.5)
+    v = T.values_of(theta)
+    assert list(v) == list(T.tuned_names("mixture"))
+    np.testing.assert_allclose(
+        [v[k] for k in v], [0.4, 0.2, 0.85, 0.15, 2.5], rtol=1e-12
+    )
+    prm = T._with_theta(
+        T.make_problem(make_mesh(k=3), PGPParams(**SMALL, range_model="mixture"), None,
+                       "evidence")[0].prm,
+        theta,
+    )
+    np.testing.assert_allclose([float(prm.nlos_weight), float(prm.nlos_mean_m)], [0.15, 2.5])
 
 
 def test_window_and_truth_required():

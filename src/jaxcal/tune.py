@@ -5,7 +5,8 @@ hypothesis cut of eq. (10), whose derivative in `tau` is zero almost everywhere.
 the filter with `select="soft"`: cell l of a node's sorted cells is weighted by
 `sigmoid((tau - m_l) / tau_temp)`, `m_l` the probability mass before it (`grid.soft_hypotheses`; the
 hard rule is the limit `tau_temp -> 0`). The parameters are optimised unconstrained as
-`theta = (log sigma_r, log sigma_v, logit tau)`.
+`theta = (log sigma_r, log sigma_v, logit tau)`, and with `range_model="mixture"` also
+`(logit nlos_weight, log nlos_mean_m)` of the NLOS-aware range kernel (`grid.range_kernel_log`).
 
 Objectives (both per tuning window, the first `epochs` epochs of the dataset):
 
@@ -18,7 +19,8 @@ Objectives (both per tuning window, the first `epochs` epochs of the dataset):
   `f(z | g) = ((1 - p_out) sum_l w_l exp(-(|g - g_l| - z)^2 / 2 sigma_r^2) + p_out) / Z`,
   `Z = (1 - p_out) sigma_r sqrt(2 pi) + p_out L`, L = the grid's diagonal (the longest range it
   can explain). This is the filter's own factor up to a constant in z, so the filter's posterior is
-  exactly the one this density model implies; with `p_out = 0` it is the Gaussian of eq. (11). No
+  exactly the one this density model implies; with `p_out = 0` it is the Gaussian of eq. (11). The
+  mixture kernel is scaled to the same integral `sigma_r sqrt(2 pi)`, so Z holds for it too. No
   ground truth is needed. (Nodes update independently given the others' hypotheses, so the sum over
   nodes is a pseudo-likelihood; every pair's range enters once per end.)
 
@@ -64,6 +66,14 @@ __all__ = [
 
 OBJECTIVES = ("truth", "evidence")
 TUNED = ("sigma_r", "sigma_v", "tau")
+# tuned as well when range_model="mixture" (theta entries 3 and 4)
+TUNED_MIXTURE = ("nlos_weight", "nlos_mean_m")
+_LOGIT = ("tau", "nlos_weight")  # in (0, 1); the others are positive (log)
+
+
+def tuned_names(range_model: str) -> tuple[str, ...]:
+    """Names of theta's entries, in order, for a range model."""
+    return TUNED + (TUNED_MIXTURE if range_model == "mixture" else ())
 
 
 def window(dataset: MeshDataset, epochs: int | None) -> MeshDataset:
@@ -204,30 +214,50 @@ def make_problem(
     return prob, order
 
 
-def _with_theta(prm: pgp.FilterParams, theta: Float[Array, " 3"]) -> pgp.FilterParams:
+def _with_theta(prm: pgp.FilterParams, theta: Float[Array, " p"]) -> pgp.FilterParams:
+    names = (TUNED + TUNED_MIXTURE)[: theta.shape[0]]
     return dataclasses.replace(
-        prm, sigma_r=jnp.exp(theta[0]), sigma_v=jnp.exp(theta[1]), tau=jax.nn.sigmoid(theta[2])
+        prm,
+        **{
+            k: jax.nn.sigmoid(theta[i]) if k in _LOGIT else jnp.exp(theta[i])
+            for i, k in enumerate(names)
+        },
     )
 
 
-def theta_of(sigma_r: float, sigma_v: float, tau: float, dtype=None) -> Float[Array, " 3"]:
-    """Unconstrained parameters (log sigma_r, log sigma_v, logit tau)."""
-    tau = min(max(tau, 1e-6), 1 - 1e-6)
-    return jnp.asarray([math.log(sigma_r), math.log(sigma_v), math.log(tau / (1 - tau))], dtype)
+def theta_of(
+    sigma_r: float,
+    sigma_v: float,
+    tau: float,
+    dtype=None,
+    nlos_weight: float | None = None,
+    nlos_mean_m: float | None = None,
+) -> Float[Array, " p"]:
+    """Unconstrained parameters (log sigma_r, log sigma_v, logit tau[, logit nlos_weight,
+    log nlos_mean_m]); the last two only when `nlos_weight` is given."""
+
+    def logit(u):
+        u = min(max(u, 1e-6), 1 - 1e-6)
+        return math.log(u / (1 - u))
+
+    t = [math.log(sigma_r), math.log(sigma_v), logit(tau)]
+    if nlos_weight is not None:
+        t += [logit(nlos_weight), math.log(nlos_mean_m)]
+    return jnp.asarray(t, dtype)
 
 
 def values_of(theta) -> dict[str, float]:
-    """{sigma_r, sigma_v, tau} of unconstrained parameters."""
+    """{sigma_r, sigma_v, tau[, nlos_weight, nlos_mean_m]} of unconstrained parameters."""
     t = np.asarray(theta, dtype=np.float64)
+    names = (TUNED + TUNED_MIXTURE)[: t.shape[0]]
     return {
-        "sigma_r": float(np.exp(t[0])),
-        "sigma_v": float(np.exp(t[1])),
-        "tau": float(1.0 / (1.0 + np.exp(-t[2]))),
+        k: float(1.0 / (1.0 + np.exp(-t[i])) if k in _LOGIT else np.exp(t[i]))
+        for i, k in enumerate(names)
     }
 
 
-def objective(theta: Float[Array, " 3"], prob: Problem) -> Float[Array, ""]:
-    """Objective at theta = (log sigma_r, log sigma_v, logit tau): RMSE [m] or NLPL [nats]."""
+def objective(theta: Float[Array, " p"], prob: Problem) -> Float[Array, ""]:
+    """Objective at theta (`theta_of`): RMSE [m] or NLPL [nats]."""
     prm = _with_theta(prob.prm, theta)
     st, out = pgp._filter(prob.cfg, prm, prob.inp, prob.logpost0)
     if prob.kind == "truth":
@@ -281,7 +311,8 @@ class TuneResult:
     """Outcome of `tune`.
 
     Attributes:
-        params: the fitted values {sigma_r [m], sigma_v [m per epoch], tau}.
+        params: the fitted values {sigma_r [m], sigma_v [m per epoch], tau} (plus nlos_weight,
+            nlos_mean_m [m] with the mixture range model).
         start: the start values (same keys).
         objective: "truth" or "evidence".
         before, after: objective value (soft cut) at the start and the end.
@@ -315,7 +346,8 @@ def tune(
     rtol: float = 1e-3,
     atol: float = 1e-4,
 ) -> TuneResult:
-    """Fit sigma_r, sigma_v and tau of the PGP filter by BFGS on the tuning objective.
+    """Fit sigma_r, sigma_v and tau (and with `range_model="mixture"` nlos_weight and
+    nlos_mean_m) of the PGP filter by BFGS on the tuning objective.
 
     Args:
         dataset: a mesh dataset (ground truth needed for `objective_name="truth"`).
@@ -335,7 +367,12 @@ def tune(
     ds = window(dataset, epochs)
     prob, _ = make_problem(ds, params, config, objective_name, tau_temp)
     dtype = prob.logpost0.dtype
-    theta0 = theta_of(params.sigma_r, params.sigma_v, params.tau, dtype)
+    mix = params.range_model == "mixture"
+    theta0 = theta_of(
+        params.sigma_r, params.sigma_v, params.tau, dtype,
+        nlos_weight=params.nlos_weight if mix else None,
+        nlos_mean_m=params.nlos_mean_m,
+    )
     before = float(_value(theta0, prob))
     if not math.isfinite(before):
         raise JaxcalError(

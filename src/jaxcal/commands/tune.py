@@ -97,7 +97,10 @@ def run(args) -> int:
         print(
             f"tune {args.objective}: {res.before:.4g} -> {res.after:.4g} in {res.steps} steps "
             f"({res.message}); sigma_r={p['sigma_r']:.3f} m sigma_v={p['sigma_v']:.3f} m "
-            f"tau={p['tau']:.3f}; "
+            f"tau={p['tau']:.3f}"
+            + (f" nlos_weight={p['nlos_weight']:.3f} nlos_mean_m={p['nlos_mean_m']:.3f} m"
+               if "nlos_weight" in p else "")
+            + "; "
             f"window rmse {hb['rmse_m']:.3f} -> {ha['rmse_m']:.3f} m, nlpl {hb['nlpl']:.3f} -> "
             f"{ha['nlpl']:.3f} -> {out}"
         )
