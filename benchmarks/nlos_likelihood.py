@@ -25,7 +25,6 @@ import time
 from pathlib import Path
 
 import jax
-import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -34,8 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 def main(argv=None) -> int:
     from peers import import_real  # same import of the real files as the peers benchmark
 
-    from jaxcal.metrics import evaluate_mesh
     from jaxcal.mesh import pgp
+    from jaxcal.metrics import evaluate_mesh
     from jaxcal.sim.mesh import simulate
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
