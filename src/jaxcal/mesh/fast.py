@@ -38,10 +38,18 @@ __all__ = [
     "scatter_window",
     "predict_window",
     "outside_bound",
+    "window_mask",
+    "RING_SPAN",
+    "ring_loglik",
 ]
 
 # log of the largest total posterior mass that may lie outside a node's window in a windowed epoch
 WINDOW_LOG_TOL = -30.0
+# S of `ring_loglik`: a neighbour's kept hypotheses must lie in an S x S block of cells
+RING_SPAN = 5
+# `ring_loglik` sums eq. (11)'s kernel in linear space; a factor below this could have lost
+# precision to underflow (float64's smallest normal number is ~2.2e-308), so it is not used
+RING_MIN_FACTOR = 1e-280
 
 
 def window_side(window_m: float, grid: G.Grid) -> int:
@@ -168,3 +176,75 @@ def outside_bound(
 def window_mask(mask: Bool[Array, "nx ny"], org: Int[Array, " 2"], w: int) -> Bool[Array, " cells"]:
     """(W^2,) allowed cells of one node inside its window."""
     return jax.lax.dynamic_slice(mask, (org[0], org[1]), (w, w)).reshape(-1)
+
+
+def ring_loglik(
+    org: Int[Array, " 2"],
+    w: int,
+    grid: G.Grid,
+    hyp_pos: Float[Array, "nodes hyp 2"],
+    hyp_logw: Float[Array, "nodes hyp"],
+    hyp_sigma: Float[Array, " nodes"],
+    z_i: Float[Array, " nodes"],
+    use_i: Bool[Array, " nodes"],
+    p_out: Float[Array, ""],
+    nlos=None,
+    span: int = RING_SPAN,
+) -> tuple[Float[Array, " cells"], Bool[Array, ""]]:
+    """`grid.node_loglik` on the W x W window at `org`, with one kernel image per neighbour.
+
+    Window cells and hypotheses (eq. 10) are grid cells, so the distance from a cell to a
+    hypothesis is a whole number of cells along each axis. When neighbour j's kept hypotheses lie
+    in an S x S block, the range kernel of eq. (11) (`grid.range_kernel_log`) is evaluated once on
+    the (W + S - 1)^2 offsets from that block and the factor is the weighted sum of S^2 shifted
+    copies of that image (most with weight 0): (W + S - 1)^2 kernel evaluations instead of
+    W^2 x H, and no transcendental in the sum. The sum is in linear space; the log is taken once
+    per (cell, neighbour).
+
+    Args:
+        org: (2,) window origin (grid indices). w: W (static). grid: the grid.
+        hyp_pos, hyp_logw: (N, H, 2) hypothesis positions [m] (grid cell centres), (N, H)
+            normalised log weights (-inf: not kept). hyp_sigma: (N,) range std [m].
+        z_i: (N,) ranges [m] (NaN missing). use_i: (N,) neighbours that contribute.
+        p_out, nlos: as in `grid.pair_loglik`. span: S (static).
+
+    Returns:
+        ((W^2,) log likelihood, ix-major like `window_cells`; ok). `ok` is False when a used
+        neighbour's hypotheses do not fit in S x S cells or a factor fell below
+        `RING_MIN_FACTOR` (linear-space underflow): the caller then uses `grid.node_loglik`.
+    """
+    dtype = hyp_logw.dtype
+    s = span
+    hidx = jnp.round(hyp_pos / grid.cell_m).astype(jnp.int32) + grid.n_half  # (N, H, 2)
+    kept = jnp.isfinite(hyp_logw)
+    big = jnp.iinfo(jnp.int32).max
+    corner = jnp.min(jnp.where(kept[..., None], hidx, big), axis=1)  # (N, 2)
+    off = jnp.where(kept[..., None], hidx - corner[:, None, :], 0)  # (N, H, 2), >= 0
+    fits = jnp.all(jnp.where(kept[..., None], off < s, True), axis=(1, 2))
+    wts = jnp.where(kept, jnp.exp(hyp_logw), 0.0)
+    # (N, S, S) weight image of the block (hypotheses outside it only matter when `fits` fails)
+    oh = jnp.arange(s)
+    img = jnp.einsum(
+        "nh,nha,nhb->nab",
+        wts,
+        (off[..., 0, None] == oh).astype(dtype),
+        (off[..., 1, None] == oh).astype(dtype),
+    )
+    # kernel image R[u, v] at offsets (org - corner - (S - 1) + (u, v)) cells from the block corner
+    u = jnp.arange(w + s - 1)
+    o = org[None, :] - corner - (s - 1)  # (N, 2)
+    dx = ((o[:, 0, None] + u[None, :]) * grid.cell_m).astype(dtype)  # (N, L)
+    dy = ((o[:, 1, None] + u[None, :]) * grid.cell_m).astype(dtype)
+    d = G.safe_norm(jnp.stack(jnp.broadcast_arrays(dx[:, :, None], dy[:, None, :]), axis=-1))
+    zs = jnp.where(use_i, z_i, 0.0)
+    r = jnp.exp(G.range_kernel_log(zs[:, None, None] - d, hyp_sigma[:, None, None], nlos))
+    # hypothesis at block offset (a, b) reads R[p + S - 1 - a, q + S - 1 - b] for window cell (p, q)
+    f = jnp.zeros((hyp_logw.shape[0], w, w), dtype)
+    for a in range(s):
+        for b in range(s):
+            sl = r[:, s - 1 - a : s - 1 - a + w, s - 1 - b : s - 1 - b + w]
+            f = f + img[:, a, b, None, None] * sl
+    fac = (1.0 - p_out) * f + p_out
+    ok = jnp.all(jnp.where(use_i, fits & (jnp.min(fac, axis=(1, 2)) > RING_MIN_FACTOR), True))
+    ll = jnp.where(use_i[:, None, None], jnp.log(jnp.maximum(fac, RING_MIN_FACTOR)), 0.0)
+    return jnp.sum(ll, axis=0).reshape(-1), ok

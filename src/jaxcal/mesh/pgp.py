@@ -116,6 +116,11 @@ class PGPParams(eqx.Module):
             posterior (two ranges only): simulated torgau conf2 runs 98 % of its epochs windowed
             at 10 m and 12 m, ~70 % at 8 m; a window too small for the data only makes more
             epochs fall back to the full grid, never changes the answer).
+        window_small_m: side of the smaller window tried first [m] (0: none). An epoch runs on it
+            when its own proven bound holds for every node, else on the `window_m` window, else
+            on the full grid (each fallback re-runs the epoch, answers unchanged). 7 m: the bound
+            needs ~2.6 m of motion-kernel tail (sigma_v = 0.25 m) around the top_k cells;
+            simulated torgau conf1 at 0.25 m holds it in every windowed epoch, at 6 m in 15 %.
         range_model: the range kernel of eq. (11): "gaussian" (the paper) or "mixture" (NLOS-aware,
             `grid.range_kernel_log`: a LOS Gaussian of std sigma_r plus, with weight
             `nlos_weight`, the Gaussian convolved with a positive exponential of mean
@@ -147,6 +152,7 @@ class PGPParams(eqx.Module):
     p_out: float = 0.05
     likelihood: str = "window"
     window_m: float = 10.0
+    window_small_m: float = 7.0
     range_model: str = "gaussian"
     nlos_weight: float = 0.2
     nlos_mean_m: float = 1.0
@@ -173,6 +179,10 @@ def _validate(p: PGPParams) -> None:
             f"{k}: must be a positive number, got {getattr(p, k)!r}",
         )
     need(p.margin_m >= 0, f"margin_m: must be >= 0, got {p.margin_m!r}")
+    need(
+        math.isfinite(p.window_small_m) and p.window_small_m >= 0,
+        f"window_small_m: must be a number >= 0, got {p.window_small_m!r}",
+    )
     need(0 < p.tau <= 1, f"tau: must be in (0, 1], got {p.tau!r}")
     need(0 < p.alpha <= 1, f"alpha: must be in (0, 1], got {p.alpha!r}")
     need(0 <= p.p_out < 1, f"p_out: must be in [0, 1), got {p.p_out!r}")
@@ -223,6 +233,8 @@ class FilterConfig(eqx.Module):
     remat: bool = eqx.field(static=True, default=False)  # jax.checkpoint the epoch (gradients)
     # W of the windowed epochs (`fast.py`); 0: every epoch on the full grid
     window: int = eqx.field(static=True, default=0)
+    # W of the small windows tried first (`window_small_m`); 0: none
+    window_small: int = eqx.field(static=True, default=0)
     # range kernel of eq. (11): "gaussian" or "mixture" (`grid.range_kernel_log`)
     range_model: str = eqx.field(static=True, default="gaussian")
 
@@ -271,6 +283,8 @@ class FilterState(eqx.Module):
     # a1 (filter node 1) lives on one grid row (eq. 5): while windowed, its posterior is this whole
     # row (n cells, exact, no bound needed; its 1-D tail is too wide for a square window)
     row: Float[Array, " n"]
+    # whether the next windowed epoch tries the small window (`FilterConfig.window_small`) first
+    small: Bool[Array, ""]
 
 
 class FilterOut(eqx.Module):
@@ -284,6 +298,7 @@ class FilterOut(eqx.Module):
     log_evidence: Float[Array, " nodes"]
     n_factors: Float[Array, " nodes"]  # number of range factors in eq. (11) this epoch
     windowed: Bool[Array, ""]  # whether this epoch ran on the windows (`likelihood="window"`)
+    small: Bool[Array, ""]  # whether it ran on the small windows (`window_small_m`)
 
 
 class PGPInfo(eqx.Module):
@@ -395,44 +410,81 @@ def _window_epoch(
     step_m,
     use,
     log_cells,
+    w: int,
 ):
-    """One jacobi epoch on the windows (`fast.py`): every node localised, posteriors in `st.win`.
+    """One jacobi epoch on W x W windows (`fast.py`): every node localised, posteriors in `st.win`
+    (`cfg.window` a side); `w` <= `cfg.window` is the side this epoch runs on (the small window of
+    `window_small_m`, or `cfg.window`), its result is placed in a `cfg.window` window (-inf
+    outside `w`, covered by the bound).
 
-    a1 runs on its whole row instead (`FilterState.row`).
+    a1 runs on its whole row instead (`FilterState.row`). Eq. (11) on the windows is
+    `fast.ring_loglik` (one kernel image per pair) when every used neighbour's hypotheses fit its
+    block and nothing underflows, else `grid.node_loglik` (same values up to rounding).
 
-    Returns (win, org, bound, ev, raw, row, ok): `ok` says the new mass outside every window is
-    below `fast.WINDOW_LOG_TOL` (else the caller runs the epoch on the full grid instead)."""
-    grid, w = cfg.grid, cfg.window
+    Returns (win, org, bound, ev, raw, row, ok, small_next): `ok` says the new mass outside every
+    window is below `fast.WINDOW_LOG_TOL` (else the caller runs the epoch on a bigger window or the
+    full grid instead); `small_next` whether the next epoch should try the small window."""
+    grid, wb = cfg.grid, cfg.window
+    ns = grid.n_side
     n = st.win.shape[0]
     dtype = st.win.dtype
-    win = st.win.reshape(n, w * w)
-    cells_of = jax.vmap(lambda o: F.window_cells(o, grid, w, dtype))
+    win = st.win.reshape(n, wb * wb)
+    cells_of = jax.vmap(lambda o: F.window_cells(o, grid, wb, dtype))
     wc_old = cells_of(st.org)
     hyps = _hypotheses(cfg, prm, win, wc_old)
-    row_cells = jnp.stack([grid.axis(dtype), jnp.zeros((grid.n_side,), dtype)], axis=-1)
+    row_cells = jnp.stack([grid.axis(dtype), jnp.zeros((ns,), dtype)], axis=-1)
     h1 = _hypotheses(cfg, prm, st.row[None], row_cells)
     hyps = tuple(h.at[1].set(h1_[0]) for h, h1_ in zip(hyps, h1, strict=True))
     nlos = _nlos(cfg, prm)
 
-    def node(win_i, org_i, wc_i, mask_i, z_i, use_i):
+    def sources(win_i, org_i, wc_i):
         vals, idx = G.top_k(win_i, cfg.top_k)
-        src_idx = org_i[None, :] + jnp.stack([idx // w, idx % w], axis=-1)
-        new_org = F.window_origin(src_idx[0, 0] * grid.n_side + src_idx[0, 1], grid.n_side, w)
+        src_idx = org_i[None, :] + jnp.stack([idx // wb, idx % wb], axis=-1)
+        flat = src_idx[0, 0] * ns + src_idx[0, 1]
+        new_org = F.window_origin(flat, ns, w)
         cells = F.window_cells(new_org, grid, w, dtype)
         prior = F.predict_window(vals, wc_i[idx], cells, step_m, prm.sigma_v)
-        ll = G.node_loglik(cells, hyps[0], hyps[1], hyps[2], z_i, use_i, prm.p_out, nlos)
-        m = F.window_mask(mask_i, new_org, w)
-        post = jnp.where(m, prior + ll, -jnp.inf)
-        lse = jax.nn.logsumexp(post)
-        ev = lse - jax.nn.logsumexp(jnp.where(m, prior, -jnp.inf))
-        pb = F.outside_bound(
-            vals, src_idx, new_org, grid.n_side, w, grid.cell_m, step_m, prm.sigma_v
-        )
-        post = post - lse
-        raw = G.window_estimate(post, cells, prm.r_est)
-        return post.reshape(w, w), new_org, pb - lse, ev, raw
+        return vals, src_idx, F.window_origin(flat, ns, wb), new_org, cells, prior
 
-    win, org, bound, ev, raw = jax.vmap(node)(win, st.org, wc_old, inp.mask, z, use)
+    vals, src_idx, org_b, org, cells, prior = jax.vmap(sources)(win, st.org, wc_old)
+
+    def direct_ll():
+        return jax.vmap(G.node_loglik, in_axes=(0, None, None, None, 0, 0, None, None))(
+            cells, hyps[0], hyps[1], hyps[2], z, use, prm.p_out, nlos
+        )
+
+    if cfg.mode == "pgp":  # hypotheses are grid cells (eq. 10)
+        ll, ring_ok = jax.vmap(
+            F.ring_loglik, in_axes=(0, None, None, None, None, None, 0, 0, None, None)
+        )(org, w, grid, hyps[0], hyps[1], hyps[2], z, use, prm.p_out, nlos)
+        ll = jax.lax.cond(jnp.all(ring_ok), lambda: ll, direct_ll)
+    else:  # eq. (9): off-grid estimates
+        ll = direct_ll()
+
+    def node(vals_i, src_i, org_b_i, org_i, cells_i, prior_i, ll_i, mask_i):
+        m = F.window_mask(mask_i, org_i, w)
+        post = jnp.where(m, prior_i + ll_i, -jnp.inf)
+        lse = jax.nn.logsumexp(post)
+        ev = lse - jax.nn.logsumexp(jnp.where(m, prior_i, -jnp.inf))
+        kw = dict(n_side=ns, cell_m=grid.cell_m, step_m=step_m, sigma_v=prm.sigma_v)
+        pb = F.outside_bound(vals_i, src_i, org_i, w=w, **kw)
+        post = post - lse
+        raw = G.window_estimate(post, cells_i, prm.r_est)
+        out = post.reshape(w, w)
+        if w < wb:  # the small window lies inside the big one centred on the same cell
+            big = jnp.full((wb, wb), -jnp.inf, dtype)
+            out = jax.lax.dynamic_update_slice(big, out, tuple(org_i - org_b_i))
+            small = pb
+        elif cfg.window_small:  # would the small window have held? (lse here >= its lse)
+            o_s = F.window_origin(src_i[0, 0] * ns + src_i[0, 1], ns, cfg.window_small)
+            small = F.outside_bound(vals_i, src_i, o_s, w=cfg.window_small, **kw)
+        else:
+            small = jnp.asarray(jnp.inf, dtype)
+        return out, pb - lse, ev, raw, small - lse
+
+    win, bound, ev, raw, small = jax.vmap(node)(
+        vals, src_idx, org_b, org, cells, prior, ll, inp.mask
+    )
     # a1 on its row: eq. (7)-(8) from its top_k cells, eq. (11) with a0's hypothesis
     vals, idx = G.top_k(st.row, cfg.top_k)
     d = G.safe_norm(row_cells[None, :, :] - row_cells[idx][:, None, :])
@@ -445,8 +497,32 @@ def _window_epoch(
     row = post - lse
     raw = raw.at[1].set(G.window_estimate(row, row_cells, prm.r_est))
     bound = bound.at[1].set(-jnp.inf)
+    small = small.at[1].set(-jnp.inf)
     ok = jnp.all(bound + log_cells < F.WINDOW_LOG_TOL)
-    return win, org, bound, ev, raw, row, ok
+    small_next = bool(cfg.window_small) & jnp.all(small + log_cells < F.WINDOW_LOG_TOL)
+    return win, org_b, bound, ev, raw, row, ok, small_next
+
+
+def _windows_epoch(cfg, prm, inp, st: FilterState, z, step_m, use, log_cells):
+    """A windowed epoch on the small window (`cfg.window_small`) when the last epoch says it may
+    hold, falling back to the big window (`cfg.window`) when its bound fails; the caller falls
+    back to the full grid when both fail. Returns `_window_epoch`'s tuple plus whether the small
+    window ran."""
+
+    def run(w):
+        return _window_epoch(cfg, prm, inp, st, z, step_m, use, log_cells, w)
+
+    def big():
+        return run(cfg.window) + (jnp.asarray(False),)
+
+    if not cfg.window_small:
+        return big()
+
+    def small_first():
+        res = run(cfg.window_small)
+        return jax.lax.cond(res[6], lambda: res + (jnp.asarray(True),), big)
+
+    return jax.lax.cond(st.small, small_first, big)
 
 
 def _full_logpost(cfg: FilterConfig, st: FilterState) -> Float[Array, "n nx ny"]:
@@ -477,6 +553,7 @@ def init_state(cfg: FilterConfig, logpost0: Float[Array, "n nx ny"]) -> FilterSt
         bound=jnp.full((n,), jnp.inf, dtype),
         windowed=jnp.asarray(False),
         row=jnp.full((cfg.grid.n_side,), -jnp.inf, dtype),
+        small=jnp.asarray(True),
     )
 
 
@@ -558,13 +635,18 @@ def _scan(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st0: FilterSt
                 nan2,
                 st.row,
                 jnp.asarray(False),
+                jnp.asarray(True),
+                jnp.asarray(False),
             )
             res = jax.lax.cond(
                 pre,
-                lambda: _window_epoch(cfg, prm, inp, st, z, step_m, use0, log_cells),
+                lambda: _windows_epoch(cfg, prm, inp, st, z, step_m, use0, log_cells),
                 lambda: skip,
             )
             ok = pre & res[6]
+            # after a full-grid epoch the windows are re-centred: try the small one first again
+            small_next = jnp.where(ok, res[7], True)
+            ran_small = ok & res[8]
 
             # the full grid is an explicit operand (not a closure constant) of both branches, so
             # the windowed branch can hand it through without a copy
@@ -595,12 +677,24 @@ def _scan(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st0: FilterSt
         else:
             logpost, heard, ev, nf, raw, win, org, bound, row, lm = full_epoch(st, z, step_m)
             windowed = st.windowed
+            small_next, ran_small = st.small, jnp.asarray(False)
         loc = _localised(heard, inp.need)
         raw = jnp.where(loc[:, None], raw, nan2)
         est, smooth, started, buf = _smooth(cfg, prm, st, raw, loc)
         est = jnp.where(loc[:, None], est, nan2)
         new = FilterState(
-            logpost, heard, smooth, started, buf, st.snaps, win, org, bound, windowed, row
+            logpost,
+            heard,
+            smooth,
+            started,
+            buf,
+            st.snaps,
+            win,
+            org,
+            bound,
+            windowed,
+            row,
+            small_next,
         )
         if cfg.n_snap:
             hit = inp.snap_at == k
@@ -612,7 +706,7 @@ def _scan(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st0: FilterSt
                 lambda: st.snaps,
             )
             new = dataclasses.replace(new, snaps=snaps)
-        return new, FilterOut(est, raw, lm, ev, nf, windowed)
+        return new, FilterOut(est, raw, lm, ev, nf, windowed, ran_small)
 
     k = inp.z.shape[0]
     body = jax.checkpoint(epoch) if cfg.remat else epoch
@@ -652,10 +746,11 @@ def _scan_windows(
         loc0 = _localised(st.heard, inp.need)
         use0 = inp.allowed & jnp.isfinite(z) & loc0[None, :]
         pre = jnp.all(loc0) & jnp.all(st.bound + log_cells < F.WINDOW_LOG_TOL)
-        skip = (st.win, st.org, st.bound, jnp.zeros((n,), dtype), nan2, st.row, jnp.asarray(False))
-        win, org, bound, ev, raw, row, ok = jax.lax.cond(
+        no = jnp.asarray(False)
+        skip = (st.win, st.org, st.bound, jnp.zeros((n,), dtype), nan2, st.row, no, st.small, no)
+        win, org, bound, ev, raw, row, ok, small_next, ran_small = jax.lax.cond(
             go & v & pre,
-            lambda: _window_epoch(cfg, prm, inp, st, z, step_m, use0, log_cells),
+            lambda: _windows_epoch(cfg, prm, inp, st, z, step_m, use0, log_cells),
             lambda: skip,
         )
         go = go & v & pre & ok
@@ -676,10 +771,11 @@ def _scan_windows(
             bound=bound,
             row=row,
             windowed=jnp.asarray(True),
+            small=small_next,
         )
         new = jax.tree.map(lambda a, b: jnp.where(go, a, b), new, st)
         nf = jnp.sum(use0, axis=1).astype(dtype)
-        return (new, go), (FilterOut(est, raw, lm, ev, nf, go), go)
+        return (new, go), (FilterOut(est, raw, lm, ev, nf, go, go & ran_small), go)
 
     k = inp.z.shape[0]
     (st, _), (out, done) = jax.lax.scan(
@@ -763,11 +859,14 @@ def _setup(params: PGPParams, grid: G.Grid, n: int, mode: str, snaps: np.ndarray
     need = np.full(n, float(params.min_refs))
     need[:3] = (0.0, 1.0, 2.0)
     ftype = jnp.result_type(float)
-    window = 0
+    window = window_small = 0
     if params.likelihood == "window" and params.update_order == "jacobi":
         window = F.window_side(params.window_m, grid)
         if window * window < params.top_k or grid.n_side < params.top_k:
             window = 0  # the windows (and a1's row) must hold the top_k cells of eq. (7)
+        small = F.window_side(params.window_small_m, grid) if params.window_small_m > 0 else 0
+        if window and small * small >= params.top_k and small < window:
+            window_small = small
     cfg = FilterConfig(
         grid=grid,
         top_k=min(params.top_k, grid.n_cells),
@@ -779,6 +878,7 @@ def _setup(params: PGPParams, grid: G.Grid, n: int, mode: str, snaps: np.ndarray
         n_snap=int(snaps.size),
         likelihood="direct" if params.likelihood in ("window", "sparse") else params.likelihood,
         window=window,
+        window_small=window_small,
         range_model=params.range_model,
     )
     prm = FilterParams(
