@@ -12,7 +12,7 @@ from jaxcal.mesh import grid as G
 from jaxcal.mesh import parametric
 from jaxcal.mesh.frame import to_frame
 from jaxcal.mesh.pgp import PGPParams, _hypotheses, prepare, run_pgp
-from jaxcal.mesh.pgp_reference import run_reference
+from jaxcal.mesh.pgp_reference import run_reference_for
 from test_pgp import SMALL, make_mesh
 
 
@@ -22,23 +22,7 @@ def test_matches_loop_reference(order):
     p = PGPParams(**SMALL, update_order=order)
     _, info = run_pgp(ds, p, mode="parametric")
     cfg, _, inp, _, _ = prepare(ds, p, None, mode="parametric")
-    ref = run_reference(
-        np.asarray(inp.z),
-        np.asarray(inp.dt),
-        cfg.grid.n_half,
-        p.cell_m,
-        top_k=cfg.top_k,
-        n_hyp=cfg.n_hyp,
-        tau=p.tau,
-        r_est=p.r_est,
-        sigma_r=p.sigma_r,
-        v=p.v,
-        sigma_v=p.sigma_v,
-        p_out=p.p_out,
-        update_order=order,
-        mode="parametric",
-        min_refs=p.min_refs,
-    )
+    ref = run_reference_for(p, cfg, inp, mode="parametric")
     np.testing.assert_allclose(info.posterior, ref["posterior"], atol=1e-9)  # x64, rounding only
     np.testing.assert_allclose(info.raw_track, ref["raw"], atol=1e-9)
 

@@ -15,7 +15,7 @@ from jaxcal.mesh import grid as G
 from jaxcal.mesh import pgp
 from jaxcal.mesh.frame import to_frame
 from jaxcal.mesh.pgp import PGPParams, prepare, run_pgp
-from jaxcal.mesh.pgp_reference import run_reference
+from jaxcal.mesh.pgp_reference import run_reference_for
 
 
 def make_mesh(
@@ -70,22 +70,7 @@ def test_matches_loop_reference(order, likelihood):
     res, info = run_pgp(ds, p)
     cfg, _, inp, _, order_idx = prepare(ds, p, None)
     assert list(order_idx) == list(range(6))
-    ref = run_reference(
-        np.asarray(inp.z),
-        np.asarray(inp.dt),
-        cfg.grid.n_half,
-        p.cell_m,
-        top_k=cfg.top_k,
-        n_hyp=cfg.n_hyp,
-        tau=p.tau,
-        r_est=p.r_est,
-        sigma_r=p.sigma_r,
-        v=p.v,
-        sigma_v=p.sigma_v,
-        p_out=p.p_out,
-        update_order=order,
-        min_refs=p.min_refs,
-    )
+    ref = run_reference_for(p, cfg, inp)
     # x64: both are exact up to rounding; 1e-9 leaves room for summation order
     np.testing.assert_allclose(info.posterior, ref["posterior"], atol=1e-9)
     np.testing.assert_array_equal(np.isnan(info.raw_track), np.isnan(ref["raw"]))
@@ -101,15 +86,10 @@ def test_mixture_range_model_matches_loop_reference(likelihood):
     p = PGPParams(**SMALL, likelihood=likelihood, **mix)
     _, info = run_pgp(ds, p)
     cfg, _, inp, _, _ = prepare(ds, p, None)
-    kw = dict(
-        top_k=cfg.top_k, n_hyp=cfg.n_hyp, tau=p.tau, r_est=p.r_est, sigma_r=p.sigma_r, v=p.v,
-        sigma_v=p.sigma_v, p_out=p.p_out, min_refs=p.min_refs,
-    )
-    args = (np.asarray(inp.z), np.asarray(inp.dt), cfg.grid.n_half, p.cell_m)
-    ref = run_reference(*args, nlos_weight=0.3, nlos_mean_m=0.8, **kw)
+    ref = run_reference_for(p, cfg, inp)
     np.testing.assert_allclose(info.posterior, ref["posterior"], atol=1e-9)
     np.testing.assert_allclose(info.raw_track, ref["raw"], atol=1e-9)
-    gauss = run_reference(*args, **kw)  # the model did reach the filter
+    gauss = run_reference_for(p, cfg, inp, nlos_weight=0.0)  # the model did reach the filter
     assert np.abs(info.posterior - gauss["posterior"]).max() > 1e-3
 
 
@@ -133,21 +113,7 @@ def test_moving_nodes_match_reference():
     p = PGPParams(**SMALL, v=2.0)
     _, info = run_pgp(ds, p)
     cfg, _, inp, _, _ = prepare(ds, p, None)
-    ref = run_reference(
-        np.asarray(inp.z),
-        np.asarray(inp.dt),
-        cfg.grid.n_half,
-        p.cell_m,
-        top_k=cfg.top_k,
-        n_hyp=cfg.n_hyp,
-        tau=p.tau,
-        r_est=p.r_est,
-        sigma_r=p.sigma_r,
-        v=p.v,
-        sigma_v=p.sigma_v,
-        p_out=p.p_out,
-        min_refs=p.min_refs,
-    )
+    ref = run_reference_for(p, cfg, inp)
     np.testing.assert_allclose(info.posterior, ref["posterior"], atol=1e-9)
     np.testing.assert_allclose(info.raw_track, ref["raw"], atol=1e-9)
 

@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-__all__ = ["run_reference"]
+__all__ = ["run_reference", "run_reference_for"]
 
 
 def _gauss(x: float, s: float) -> float:
@@ -199,3 +199,33 @@ def run_reference(
         for m, (flat, _, _) in enumerate(regions[i]):
             post[i, flat // side, flat % side] = prob[i][m]
     return {"posterior": post, "raw": raw, "mass": mass}
+
+
+def run_reference_for(params, cfg, inp, mode: str = "pgp", **override) -> dict:
+    """`run_reference` with the settings of a `pgp.PGPParams` and the arrays of `pgp.prepare`.
+
+    Args:
+        params: a `PGPParams` (read by attribute). cfg, inp: `FilterConfig`, `FilterInputs` of
+            `pgp.prepare` (grid, top_k, hypothesis cap, ranges, time steps). mode: "pgp" or
+            "parametric". override: `run_reference` keywords to replace.
+    """
+    mix = params.range_model == "mixture"
+    kw = dict(
+        top_k=cfg.top_k,
+        n_hyp=cfg.n_hyp,
+        tau=params.tau,
+        r_est=params.r_est,
+        sigma_r=params.sigma_r,
+        v=params.v,
+        sigma_v=params.sigma_v,
+        p_out=params.p_out,
+        nlos_weight=params.nlos_weight if mix else 0.0,
+        nlos_mean_m=params.nlos_mean_m,
+        update_order=params.update_order,
+        mode=mode,
+        min_refs=params.min_refs,
+        a2_all=params.a2_all,
+    )
+    kw.update(override)
+    z, dt = np.asarray(inp.z, dtype=np.float64), np.asarray(inp.dt, dtype=np.float64)
+    return run_reference(z, dt, cfg.grid.n_half, cfg.grid.cell_m, **kw)
