@@ -78,6 +78,7 @@ __all__ = [
     "fit_hyper",
     "predict",
     "search_anchor",
+    "gradient_step",
     "stratified_subsample",
     "to_target",
     "from_target",
@@ -106,6 +107,9 @@ class GPParams(TrajectoryParams):
         margin_m: the initial cuboid is the data bounding box grown by this [m].
         stages: 1 = one GP per anchor; 2 = then refit on the `n_train` shortest ranges and search again
             around the first estimate (the paper's coarse-to-fine "iterative GP").
+        search: `cuboid` (the paper: extremum of the GP mean by the iterative cuboid search) or
+            `gradient` (eikonal step a = p - r grad r from the `top_k` training inputs with the
+            smallest predicted range, `gradient_step`: the anchor may lie outside the covered region).
         min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s, max_gap_s, time_offset_s, estimate_offset,
         max_offset_s: as for `ls`.
     """
@@ -124,6 +128,7 @@ class GPParams(TrajectoryParams):
     tol_m: float = 0.005
     margin_m: float = 5.0
     stages: int = 2
+    search: str = "cuboid"
 
 
 # ---------------------------------------------------------------------------------------- kernel
@@ -351,6 +356,56 @@ def search_anchor(
     return c, covs[-1]
 
 
+def gradient_step(
+    post: _Posterior,
+    x: Float[Array, "n 3"],
+    mask: Bool[Array, " n"],
+    target: str,
+    top_k: int,
+    planar: Bool[Array, ""],
+    side: float,
+):
+    """Anchor from the GP's range field at the data: a = p - r(p) grad r(p) (eikonal step, one anchor).
+
+    A range field r(p) = |p - a| has |grad r| = 1 and grad r pointing away from the anchor, so every
+    point p with its range and gradient gives the anchor; the GP posterior mean supplies a denoised
+    r and grad r at the training inputs, where it is supported by data (the cuboid search instead
+    reads the GP where it may have to extrapolate). The `top_k` training inputs with the smallest
+    predicted range each give a candidate; the estimate is their mean. Planar inputs (z unobservable):
+    the horizontal step uses grad_xy r (norm clipped to 1) and the height above the point is
+    side * r sqrt(1 - |grad_xy r|^2); otherwise the gradient is normalised to unit length.
+
+    Args:
+        post: GP posterior. x: (n, 3) training inputs [m] (frame of `post`). mask: (n,) valid.
+        target: `range` or `inv-log`. top_k: candidates averaged (static). planar: whether z is
+        unobservable. side: +1 anchor above the plane of the inputs, -1 below.
+
+    Returns:
+        (estimate (3,), sample covariance (3, 3) of the candidates, the best training input (3,)).
+    """
+    y, gy = jax.vmap(jax.value_and_grad(lambda q: predict(post, q[None])[0]))(x)
+    r = from_target(y, target)
+    dr = jax.vmap(jax.grad(lambda v: from_target(v, target)))(y)
+    g = gy * dr[:, None]
+    r_ok = mask & jnp.isfinite(r)
+    k = min(top_k, x.shape[0])
+    _, idx = jax.lax.top_k(jnp.where(r_ok, -r, -jnp.inf), k)
+    w = r_ok[idx].astype(x.dtype)  # fewer valid inputs than k: the padding gets no weight
+    p, r, g = x[idx], jnp.where(r_ok[idx], jnp.maximum(r[idx], 0.0), 0.0), g[idx]
+    s2 = jnp.sum(g[:, :2] ** 2, axis=1)
+    s = jnp.sqrt(jnp.where(s2 > 0, s2, 1.0))
+    gxy = g[:, :2] / jnp.maximum(s, 1.0)[:, None]
+    height = side * r * jnp.sqrt(jnp.maximum(1.0 - jnp.sum(gxy**2, axis=1), 0.0))
+    cand_planar = jnp.concatenate([p[:, :2] - r[:, None] * gxy, (p[:, 2] + height)[:, None]], 1)
+    n2 = jnp.sum(g**2, axis=1)
+    unit = g / jnp.sqrt(jnp.where(n2 > 0, n2, 1.0))[:, None]
+    cand = jnp.where(planar, cand_planar, p - r[:, None] * unit)
+    nw = jnp.maximum(jnp.sum(w), 1.0)
+    est = jnp.sum(cand * w[:, None], axis=0) / nw
+    d = (cand - est) * w[:, None]
+    return est, d.T @ d / jnp.maximum(nw - 1.0, 1.0), p[0]
+
+
 # ------------------------------------------------------------------------------------ subsample
 
 
@@ -485,10 +540,14 @@ def _calibrate_all(x, r, mask, centre, half, planar, p: GPParams, n_rounds: int,
         init = Hyper(jnp.log(jnp.maximum(0.3 * ext, 1e-2)), jnp.log(var_y), jnp.log(0.01 * var_y))
         h = fit_hyper(xc, yc, m, init, p.nu, p.jitter, p.max_steps)
         post = _posterior(h, xc, yc, m, mean, p.nu, p.jitter)
-        est, cov = search_anchor(
-            post, c0 - origin, h0, p.target, p.grid, p.top_k, p.shrink, n_rounds, grid_z
-        )
-        mu, var = predict(post, est[None], with_var=True)
+        if p.search == "gradient":
+            est, cov, pt = gradient_step(post, xc, m, p.target, p.top_k, pl, p.side)
+        else:
+            est, cov = search_anchor(
+                post, c0 - origin, h0, p.target, p.grid, p.top_k, p.shrink, n_rounds, grid_z
+            )
+            pt = est
+        mu, var = predict(post, pt[None], with_var=True)
         d_hat = from_target(mu[0], p.target)
         if p.target == "range":
             sd = jnp.sqrt(var[0])
@@ -500,7 +559,8 @@ def _calibrate_all(x, r, mask, centre, half, planar, p: GPParams, n_rounds: int,
         r_max = jnp.max(jnp.where(m, r, 0.0))
         height = jnp.clip(d_hat, 0.0, r_max)
         sd = jnp.minimum(sd, r_max)
-        est = jnp.where(pl, est.at[2].set(est[2] + p.side * height), est)
+        if p.search != "gradient":  # the gradient step places the height itself
+            est = jnp.where(pl, est.at[2].set(est[2] + p.side * height), est)
         return est + origin, cov + sd**2 * jnp.eye(3), h
 
     # lax.map, not vmap: batched triangular solves (Cholesky gradients) are far slower on CPU than a
@@ -523,6 +583,8 @@ def calibrate(dataset, params=None, config=None) -> Result:
     p = with_overrides(GPParams(), params)
     if p.target not in ("range", "inv-log"):
         raise JaxcalError(f"parameter target: expected range or inv-log, got {p.target!r}")
+    if p.search not in ("cuboid", "gradient"):
+        raise JaxcalError(f"parameter search: expected cuboid or gradient, got {p.search!r}")
     if p.mean not in ("constant", "anchor"):
         raise JaxcalError(f"parameter mean: expected constant or anchor, got {p.mean!r}")
     matern(jnp.zeros(1), 1.0, 1.0, p.nu)  # validates nu
