@@ -156,3 +156,78 @@ def test_host_chunked_driver_equals_one_scan(jump_runs):
     np.testing.assert_allclose(out.estimate, out_w.estimate, atol=1e-12)
     np.testing.assert_allclose(out.log_evidence, out_w.log_evidence, atol=1e-9)
     np.testing.assert_allclose(np.exp(st.logpost), np.exp(st_w.logpost), atol=1e-12)
+
+
+# small windows of 3 m (W = 12) inside the 4 m ones (W = 16): with sigma_v = 0.12 m every windowed
+# epoch holds the small window's bound; with 0.2 m it never does (each windowed epoch runs on the
+# big window) and the jump of node 4 also sends epochs back to the full grid
+BRANCHES = {
+    "small": dict(sigma_v=0.12, window_small_m=3.0),
+    "big+full": dict(sigma_v=0.2, window_small_m=3.0),
+    "small-mixture": dict(sigma_v=0.12, window_small_m=3.0, range_model="mixture", p_out=0.05),
+}
+
+
+@pytest.fixture(scope="module", params=sorted(BRANCHES))
+def branch_runs(request):
+    ds = mesh(k=22, jump=(12, 4, 0.9))
+    kw = BRANCHES[request.param]
+    return request.param, run(ds, "window", **kw), run(ds, "direct", **kw)
+
+
+def test_each_window_branch_equals_direct(branch_runs):
+    """Small window, big window (after the small one failed) and full-grid fallback each give
+    the direct evaluation's posteriors, evidence and estimates."""
+    name, (cfg_w, st_w, out_w), (_, st_d, out_d) = branch_runs
+    assert (cfg_w.window, cfg_w.window_small) == (16, 12)
+    used, small = np.asarray(out_w.windowed), np.asarray(out_w.small)
+    assert not (small & ~used).any()
+    if name.startswith("small"):
+        assert small[6:].all(), small
+    else:
+        first = int(np.argmax(used))
+        assert used.sum() >= 4 and not small.any(), (used, small)
+        assert not used[first:].all(), used  # the full grid after the windows had started
+    np.testing.assert_array_equal(np.isnan(out_w.raw), np.isnan(out_d.raw))
+    np.testing.assert_allclose(out_w.raw, out_d.raw, atol=1e-9)
+    np.testing.assert_allclose(out_w.estimate, out_d.estimate, atol=1e-9)
+    np.testing.assert_allclose(np.exp(st_w.logpost), np.exp(st_d.logpost), atol=1e-9)
+    np.testing.assert_allclose(out_w.log_evidence, out_d.log_evidence, atol=1e-7)
+
+
+@pytest.mark.parametrize("p_out", [0.0, 0.05])
+@pytest.mark.parametrize("mixture", [False, True])
+def test_ring_loglik_equals_node_loglik(p_out, mixture):
+    """`fast.ring_loglik` (one kernel image per pair) against `grid.node_loglik` on a window."""
+    grid = G.Grid(n_half=30, cell_m=0.25)
+    rng = np.random.default_rng(1)
+    n, h, w = 6, 4, 16
+    org = np.array([10, 25], np.int32)
+    hidx = rng.integers(20, 40, (n, 1, 2)) + rng.integers(0, 4, (n, h, 2))
+    pos = (hidx - grid.n_half) * grid.cell_m
+    lw = rng.normal(0, 1, (n, h))
+    lw[:, -1] = -np.inf  # a hypothesis not kept (eq. 10)
+    lw -= np.logaddexp.reduce(lw, axis=1, keepdims=True)
+    z = rng.uniform(1, 6, n)
+    z[2] = np.nan
+    use = np.isfinite(z)
+    sig = np.full(n, 0.3)
+    nlos = (np.float64(0.2), np.float64(1.0)) if mixture else None
+    cells = F.window_cells(org, grid, w, np.float64)
+    ref = G.node_loglik(cells, pos, lw, sig, z, use, p_out, nlos)
+    got, ok = F.ring_loglik(org, w, grid, pos, lw, sig, z, use, p_out, nlos)
+    assert bool(ok)
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
+    # hypotheses spread wider than the S x S block: refused (the caller uses node_loglik)
+    spread = pos.copy()
+    spread[0, 1] += 2.0
+    assert not bool(F.ring_loglik(org, w, grid, spread, lw, sig, z, use, p_out, nlos)[1])
+    # and a neighbour without a range is not checked
+    spread_unused = pos.copy()
+    spread_unused[2, 1] += 2.0
+    assert bool(F.ring_loglik(org, w, grid, spread_unused, lw, sig, z, use, p_out, nlos)[1])
+    # factors that underflow in linear space (p_out = 0, Gaussian, ranges 150 sigma off): refused;
+    # with the floor p_out > 0 an underflow cannot change a factor
+    far = F.ring_loglik(org, w, grid, pos, lw, np.full(n, 0.02), z + 3.0, use, p_out, nlos)[1]
+    if p_out > 0 or not mixture:
+        assert bool(far) == (p_out > 0)
