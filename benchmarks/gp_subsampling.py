@@ -3,16 +3,16 @@
     python benchmarks/gp_subsampling.py [FILE.h5 ...] [--campus] [--n 150 300 1000]
         [--set key=value ...] [--max-n N]
 
-For every dataset and every n in `--n` (plus "all": the largest per-anchor range count, run only when
-it is at most `--max-n`, a dense GP costs O(n^3) per likelihood step):
+For every dataset and every n in `--n` (plus "all": the largest per-anchor range count, run only
+when it is at most `--max-n`; a dense GP costs O(n^3) per likelihood step):
 
-- `gp` with `n_train=n` (stratified by range, `gp.stratified_subsample`; `--set` adds GP parameters,
-  e.g. `--set search=gradient`);
-- `nls` as a control on a copy of the dataset whose ranges are the same kind of stratified subsample,
-  n per anchor (so that the effect of fewer ranges is separated from the effect of the GP).
+- `gp` with `n_train=n` (stratified by range, `gp.stratified_subsample`; `--set` adds GP
+  parameters, e.g. `--set search=gradient`);
+- `nls` as a control on a copy of the dataset whose ranges are the same kind of stratified
+  subsample, n per anchor (so that the effect of fewer ranges is separated from that of the GP).
 
-Printed per run: dataset, method, n_train, mean / median 3-D anchor error [m], seconds (one cold call,
-JIT compilation included: every n is a new shape) and the 1-minute load average (the machine is shared).
+Printed per run: dataset, method, n_train, mean / median 3-D anchor error [m], seconds (one cold
+call, JIT compilation included: every n is a new shape) and the 1-minute load average.
 On a shared CPU set XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1".
 """
 
@@ -33,7 +33,7 @@ from jaxcal.trajectory.gp import stratified_subsample
 
 
 def subsample_dataset(ds: TrajectoryDataset, n: int, seed: int = 0) -> TrajectoryDataset:
-    """Copy of `ds` keeping at most `n` ranges per anchor (stratified by range, all tags together)."""
+    """Copy of `ds` with at most `n` ranges per anchor (stratified by range, all tags together)."""
     keep = []
     for a in range(len(ds.anchor_ids)):
         idx = np.nonzero(np.asarray(ds.range_anchor) == a)[0]
@@ -41,8 +41,15 @@ def subsample_dataset(ds: TrajectoryDataset, n: int, seed: int = 0) -> Trajector
             keep.append(idx[stratified_subsample(np.asarray(ds.range)[idx], n, 10, seed + a)])
     keep = np.sort(np.concatenate(keep))
     fields = {k: getattr(ds, k) for k in ds.__dataclass_fields__}
-    per_range = ("range_time", "range_anchor", "range_tag", "range", "range_los", "fp_rssi", "rx_rssi")
-    for k in per_range:
+    for k in (
+        "range_time",
+        "range_anchor",
+        "range_tag",
+        "range",
+        "range_los",
+        "fp_rssi",
+        "rx_rssi",
+    ):
         if fields[k] is not None:
             fields[k] = np.asarray(fields[k])[keep]
     return TrajectoryDataset(**fields)

@@ -1,4 +1,5 @@
-"""GP anchor calibration: kernel and likelihood against dense SciPy references, gradients, accuracy."""
+"""GP anchor calibration: kernel and likelihood against dense SciPy references, gradients,
+accuracy."""
 
 import jax.numpy as jnp
 import numpy as np
@@ -129,7 +130,9 @@ def test_gp_bad_target_is_a_clear_error():
 
 def _theta():
     return gp.MeanModel(
-        jnp.array([0.3, -0.2, 1.5]), jnp.array(0.1), gp.Hyper(jnp.log(1.2), jnp.log(0.3), jnp.log(0.05))
+        jnp.array([0.3, -0.2, 1.5]),
+        jnp.array(0.1),
+        gp.Hyper(jnp.log(1.2), jnp.log(0.3), jnp.log(0.05)),
     )
 
 
@@ -141,7 +144,9 @@ def test_mean_model_nlml_equals_dense_scipy(target):
     r = rng.uniform(1.0, 6.0, n + pad)
     mask = np.arange(n + pad) < n
     th = _theta()
-    got = float(gp.mean_model_nlml(th, jnp.asarray(x), jnp.asarray(r), jnp.asarray(mask), 1.5, 1e-6, target))
+    got = float(
+        gp.mean_model_nlml(th, jnp.asarray(x), jnp.asarray(r), jnp.asarray(mask), 1.5, 1e-6, target)
+    )
     xv, rv = x[:n], r[:n]
     d = np.linalg.norm(xv[:, None] - xv[None], axis=-1)
     k = _matern_ref(d, 1.2, 0.3, 1.5) + (0.05 + 1e-6 * 0.3) * np.eye(n)
@@ -193,3 +198,97 @@ def eqx_replace(ds, **kw):
 def test_gp_bad_mean_is_a_clear_error():
     with pytest.raises(JaxcalError, match="mean"):
         gp.calibrate(drone(), {"mean": "linear"})
+
+
+# ------------------------------------------------------------------ search=gradient (eikonal step)
+
+
+def trolley(noise=0.0, seed=0):
+    """A planar trolley (z = 0) mowing a 10 x 8 m floor; anchor `in` 2 m above the floor, anchor
+    `out` 6 m beyond its east edge (outside the covered region) and 2.5 m up."""
+    rng = np.random.default_rng(seed)
+    anchors = np.array([[4.0, 3.5, 2.0], [16.0, 4.0, 2.5]])
+    t = np.arange(0.0, 80.0, 0.05)
+    x = 5.0 + 5.0 * np.sin(2 * np.pi * t / 20.0)  # east-west sweeps
+    y = 4.0 + 4.0 * np.sin(2 * np.pi * t / 80.0 - np.pi / 2)  # slow drift north and back
+    pose = np.stack([x, y, np.zeros_like(t)], 1)
+    rt = np.arange(0.02, 79.9, 0.1)
+    k = np.arange(rt.size) % 2
+    pr = np.stack([np.interp(rt, t, pose[:, d]) for d in range(3)], 1)
+    r = np.linalg.norm(pr - anchors[k], axis=1) + noise * rng.normal(size=rt.size)
+    return TrajectoryDataset(
+        name="trolley",
+        anchor_ids=["in", "out"],
+        tag_ids=["t"],
+        lever_arm=np.zeros((1, 3)),
+        pose_time=t,
+        pose_position=pose,
+        range_time=rt,
+        range_anchor=k,
+        range_tag=np.zeros(rt.size, int),
+        range=r,
+        anchor_truth=anchors,
+    )
+
+
+def test_gradient_search_finds_anchor_outside_covered_region():
+    """The cuboid search can only return points where the GP has data (its mean reverts to the
+    constant far away); the eikonal step extrapolates from the data to an anchor 6 m outside."""
+    ds = trolley(noise=0.02)
+    errs = {}
+    for search in ("cuboid", "gradient"):
+        res = gp.calibrate(ds, {"n_train": 100, "search": search})
+        errs[search] = np.linalg.norm(res.position - ds.anchor_truth, axis=1)
+    assert errs["gradient"][0] < 0.3, errs  # anchor above the covered floor
+    assert errs["gradient"][1] < 1.0, errs  # anchor 6 m outside it
+    assert errs["cuboid"][1] > 3.0, errs  # the paper's search cannot leave the data
+    assert np.all(np.linalg.eigvalsh(res.covariance) > 0)
+
+
+def _post_numpy(x, y, length, var, noise, nu):
+    d = np.linalg.norm(x[:, None] - x[None], axis=-1)
+    k = _matern_ref(d, length, var, nu) + noise * np.eye(len(x))
+    alpha = np.linalg.solve(k, y)
+
+    def mean(q):
+        return _matern_ref(np.linalg.norm(q[None] - x, axis=-1), length, var, nu) @ alpha
+
+    return mean
+
+
+@pytest.mark.parametrize("planar", [False, True])
+def test_gradient_step_equals_numpy_finite_differences(planar):
+    """gradient_step against a dense NumPy posterior mean differentiated by central differences."""
+    rng = np.random.default_rng(7)
+    n, k = 40, 5
+    x = rng.uniform(-4, 4, (n, 3))
+    if planar:
+        x[:, 2] = 0.0
+    anchor = np.array([1.0, -0.5, 2.0])
+    r = np.linalg.norm(x - anchor, axis=1) + 0.05 * rng.normal(size=n)
+    mean_r = r.mean()
+    h = gp.Hyper(jnp.log(3.0), jnp.log(4.0), jnp.log(0.01))
+    mask = jnp.ones(n, bool)
+    post = gp._posterior(h, jnp.asarray(x), jnp.asarray(r - mean_r), mask, mean_r, 1.5, 0.0)
+    est, cov, _ = gp.gradient_step(post, jnp.asarray(x), mask, "range", k, jnp.asarray(planar), 1.0)
+    f = _post_numpy(x, r - mean_r, 3.0, 4.0, 0.01, 1.5)
+    rh = np.array([f(q) for q in x]) + mean_r
+    top = np.argsort(rh)[:k]
+    cands = []
+    for i in top:
+        e = 1e-5
+        g = np.array([(f(x[i] + e * u) - f(x[i] - e * u)) / (2 * e) for u in np.eye(3)])
+        if planar:
+            gxy = g[:2] / max(1.0, np.linalg.norm(g[:2]))
+            z = rh[i] * np.sqrt(max(1.0 - gxy @ gxy, 0.0))
+            cands.append(np.r_[x[i, :2] - rh[i] * gxy, x[i, 2] + z])
+        else:
+            cands.append(x[i] - rh[i] * g / np.linalg.norm(g))
+    cands = np.array(cands)
+    np.testing.assert_allclose(np.asarray(est), cands.mean(0), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(cov), np.cov(cands.T), atol=1e-6)
+
+
+def test_gp_bad_search_is_a_clear_error():
+    with pytest.raises(JaxcalError, match="search"):
+        gp.calibrate(drone(), {"search": "grid"})

@@ -2,7 +2,7 @@
 
 Per anchor, a GP regresses a target derived from the range over the tag positions:
 
-- `target="range"`: the range itself (the paper's text), with a constant mean equal to the mean of the
+- `target="range"`: the range itself (the paper's text), with a constant mean equal to the mean of
   training ranges, so that far from the data the prediction reverts to a typical (large) range and
   the search for the *smallest* predicted range stays near the data;
 - `target="inv-log"`: y = 1 / log10(sqrt(r) + 1) with a zero mean (the public code): large near the
@@ -11,12 +11,14 @@ Per anchor, a GP regresses a target derived from the range over the tag position
 Kernel: Matern with smoothness `nu` plus white noise. nu = 1/2, 3/2, 5/2 use their closed forms; any
 other non-integer nu (e.g. the public code's 5/3) uses the general form
 `k(r) = s^2 2^(1-nu) / Gamma(nu) z^nu K_nu(z)`, `z = sqrt(2 nu) r / l`, with
-`K_nu = pi / (2 sin(nu pi)) (I_-nu - I_nu)` summed as two power series in z^2 (no square root, smooth
+`K_nu = pi / (2 sin(nu pi)) (I_-nu - I_nu)` summed as two power series in z^2 (no square root,
+smooth
 at r = 0) for z <= 9 and the large-z asymptotic expansion beyond (see `matern`). The cancellation of
 the series costs at most ~1e-10 absolute in k / s^2, below the jitter.
 
 Hyperparameters (log length scale, log signal variance, log noise variance) maximise the marginal
-likelihood: `optx.minimise` with BFGS on the negative log marginal likelihood, per anchor (anchors in
+likelihood: `optx.minimise` with BFGS on the negative log marginal likelihood, per anchor (anchors
+in
 one jitted `lax.map`: every anchor shares the shapes, padded and masked).
 
 Anchor search (the paper's iterative cuboid search): a regular G^3 grid in a cuboid around the data
@@ -27,11 +29,21 @@ is below `tol_m` (a static number of rounds, `lax.scan`). When an anchor's tag p
 plane and the height above it is the predicted range at the found point (side `side`).
 
 Large recordings: the training set of each anchor is a stratified subsample by measured range
-(`n_bins` equal-width range bins, equal quotas, leftovers filled at random), at most `n_train` ranges
+(`n_bins` equal-width range bins, equal quotas, leftovers filled at random), at most `n_train`
+ranges
 (the paper's "layered random sampling"). With `stages=2` (default) a second GP is fitted to the
 `n_train` shortest ranges of the anchor and searched in a cuboid around the first estimate (the
-paper's "first fitting initial points at a coarse scale", then refining). The cost of this in accuracy is measured in
-benchmarks/trajectory_gp.py. No inducing points.
+paper's "first fitting initial points at a coarse scale", then refining). What the subsample costs
+in accuracy is measured by benchmarks/gp_subsampling.py. No inducing points.
+
+Gradient search (`search="gradient"`, not the paper's): the minimum of the constant-mean GP lies
+where the GP has data, so the cuboid search cannot reach an anchor outside the region the platform
+covered (and a planar route then puts the whole range into the height). `gradient_step` instead
+uses the eikonal property of a range field, |grad r| = 1 with grad r pointing away from the anchor:
+from each of the `top_k` training inputs with the smallest predicted range, a = p - r(p) grad r(p)
+with r and grad r from the GP posterior mean (autodiff of the kernel), read where the GP is
+supported by data; the estimate is the candidates' mean and its covariance their spread plus the
+posterior variance term below.
 
 Covariance of an estimate: the sample covariance of the top-k samples of the last round plus the
 GP's posterior variance of the range at the estimate times the identity (for `inv-log`, mapped to
@@ -40,7 +52,8 @@ standard deviation moves its apex by about as much.
 
 Parametric mean (`mean="anchor"`): the constant-mean GP above has no notion of where the anchor is;
 the cuboid search minimises the GP's extrapolation when the anchor lies outside the region the tag
-covers, and the height is barely observable from near-planar trajectories. With `mean="anchor"` the GP
+covers, and the height is barely observable from near-planar trajectories. With `mean="anchor"` the
+GP
 models T(r) = T(|p - a| + b) + f(p): the anchor a and the bias b are mean parameters fitted jointly
 with the kernel hyperparameters by maximising the marginal likelihood (`fit_mean_model`, Optimistix
 BFGS, initialised from `nls` on all ranges), and f absorbs spatially correlated range errors (NLOS
@@ -105,13 +118,15 @@ class GPParams(TrajectoryParams):
         grid: samples per axis of the search cuboid; top_k: best samples averaged per round.
         shrink: cuboid scale factor per round; tol_m: stop when the half size is below this [m].
         margin_m: the initial cuboid is the data bounding box grown by this [m].
-        stages: 1 = one GP per anchor; 2 = then refit on the `n_train` shortest ranges and search again
+        stages: 1 = one GP per anchor; 2 = then refit on the `n_train` shortest ranges and search
+            again
             around the first estimate (the paper's coarse-to-fine "iterative GP").
         search: `cuboid` (the paper: extremum of the GP mean by the iterative cuboid search) or
             `gradient` (eikonal step a = p - r grad r from the `top_k` training inputs with the
-            smallest predicted range, `gradient_step`: the anchor may lie outside the covered region).
-        min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s, max_gap_s, time_offset_s, estimate_offset,
-        max_offset_s: as for `ls`.
+            smallest predicted range, `gradient_step`; the anchor may lie outside the covered
+            region).
+        min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s, max_gap_s, time_offset_s,
+        estimate_offset, max_offset_s: as for `ls`.
     """
 
     target: str = "range"
@@ -166,9 +181,7 @@ def _matern_general(z2, nu: float):
     return jnp.where(small, f_small, f_large)
 
 
-def matern(
-    d2: Float[Array, ...], length: Float[Array, ""], variance: Float[Array, ""], nu: float
-):
+def matern(d2: Float[Array, ...], length: Float[Array, ""], variance: Float[Array, ""], nu: float):
     """Matern covariance from squared distances.
 
     Args:
@@ -228,7 +241,7 @@ def neg_log_marginal_likelihood(
     nu: float = 1.5,
     jitter: float = 1e-6,
 ) -> Float[Array, ""]:
-    """-log p(y | x, h) of a zero-mean GP with Matern + white noise; padded entries (mask False) ignored.
+    """-log p(y | x, h): zero-mean GP, Matern + white noise; padded entries (mask False) ignored.
 
     Args:
         h: hyperparameters. x: (n, 3) inputs [m]. y: (n,) centred targets. mask: (n,) valid entries.
@@ -299,7 +312,7 @@ def predict(post: _Posterior, xs: Float[Array, "m 3"], with_var: bool = False):
 
 
 def to_target(r, target: str):
-    """Range [m] -> GP target (`range`: identity; `inv-log`: 1 / log10(sqrt(r) + 1), r floored at 1 mm)."""
+    """Range [m] -> GP target (`range`: identity; `inv-log`: 1 / log10(sqrt(r) + 1), r >= 1 mm)."""
     if target == "range":
         return r
     return 1.0 / jnp.log10(jnp.sqrt(jnp.maximum(r, 1e-3)) + 1.0)
@@ -365,15 +378,15 @@ def gradient_step(
     planar: Bool[Array, ""],
     side: float,
 ):
-    """Anchor from the GP's range field at the data: a = p - r(p) grad r(p) (eikonal step, one anchor).
+    """Anchor from the GP's range field at the data: a = p - r(p) grad r(p) (eikonal, one anchor).
 
     A range field r(p) = |p - a| has |grad r| = 1 and grad r pointing away from the anchor, so every
     point p with its range and gradient gives the anchor; the GP posterior mean supplies a denoised
     r and grad r at the training inputs, where it is supported by data (the cuboid search instead
     reads the GP where it may have to extrapolate). The `top_k` training inputs with the smallest
-    predicted range each give a candidate; the estimate is their mean. Planar inputs (z unobservable):
-    the horizontal step uses grad_xy r (norm clipped to 1) and the height above the point is
-    side * r sqrt(1 - |grad_xy r|^2); otherwise the gradient is normalised to unit length.
+    predicted range each give a candidate; the estimate is their mean. Planar inputs (z not
+    observable): the horizontal step uses grad_xy r (norm clipped to 1) and the height above the
+    point is side * r sqrt(1 - |grad_xy r|^2); otherwise the gradient is normalised to unit length.
 
     Args:
         post: GP posterior. x: (n, 3) training inputs [m] (frame of `post`). mask: (n,) valid.
@@ -486,7 +499,9 @@ def fit_mean_model(x, r, mask, init: MeanModel, nu=1.5, jitter=1e-6, max_steps=2
     def loss(th, _):
         return mean_model_nlml(th, x, r, mask, nu, jitter, target) / n
 
-    sol = optx.minimise(loss, optx.BFGS(rtol=1e-7, atol=1e-7), init, max_steps=max_steps, throw=False)
+    sol = optx.minimise(
+        loss, optx.BFGS(rtol=1e-7, atol=1e-7), init, max_steps=max_steps, throw=False
+    )
     ok = jnp.isfinite(loss(sol.value, None))
     th = jax.tree.map(lambda a, b: jnp.where(ok, a, b), sol.value, init)
     flat, unravel = jax.flatten_util.ravel_pytree(th)
@@ -514,7 +529,9 @@ def _calibrate_mean(x, r, mask, init_anchor, init_bias, p: GPParams):
         init = MeanModel(
             a0,
             b0,
-            Hyper(jnp.log(jnp.maximum(0.1 * ext, 1e-2)), jnp.log(0.5 * var_y), jnp.log(0.5 * var_y)),
+            Hyper(
+                jnp.log(jnp.maximum(0.1 * ext, 1e-2)), jnp.log(0.5 * var_y), jnp.log(0.5 * var_y)
+            ),
         )
         th, cov = fit_mean_model(xc, r, m, init, p.nu, p.jitter, p.max_steps, p.target)
         return th.anchor + origin, cov, th.hyper, th.bias
@@ -570,7 +587,7 @@ def _calibrate_all(x, r, mask, centre, half, planar, p: GPParams, n_rounds: int,
 
 @in_float64
 def calibrate(dataset, params=None, config=None) -> Result:
-    """`--method gp`: GP regression of the range per anchor + iterative cuboid search (frame `world`).
+    """`--method gp`: GP regression of the range per anchor, then the anchor search (frame `world`).
 
     Args:
         dataset: TrajectoryDataset. params: overrides of `GPParams`. config: ignored.
@@ -678,7 +695,7 @@ def calibrate(dataset, params=None, config=None) -> Result:
 
 
 def _calibrate_anchor_mean(dataset, p: GPParams, groups, info, n: int, planar) -> Result:
-    """`mean=anchor`: `nls` on all ranges for the start, then the mean-model GP on a stratified subsample."""
+    """`mean=anchor`: `nls` on all ranges to start, then the mean-model GP on a stratified set."""
     from jaxcal.trajectory import nls
     from jaxcal.trajectory.poses import AnchorRanges
 
