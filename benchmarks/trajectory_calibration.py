@@ -4,10 +4,11 @@
 
 FILE.h5: trajectory files with anchor truth (e.g. written by `jaxcal import hymn|cuhksz|hanyang`).
 --campus: the simulated campus scenario without and with odometry drift (0.05 m/sqrt(s)).
---subsample: GP accuracy against the training-set size per anchor (cost of the stratified subsample).
-Run time includes JIT compilation of the first call of each configuration ("seconds") and is repeated
-once warm ("warm_seconds"). On a shared CPU set XLA_FLAGS="--xla_cpu_multi_thread_eigen=false
-intra_op_parallelism_threads=1" to avoid thread oversubscription.
+--subsample: GP accuracy against the training-set size on campus (quick look; the full measurement
+with an nls control on the same subsample is benchmarks/gp_subsampling.py).
+Run time includes JIT compilation of the first call of each configuration ("seconds") and is
+repeated once warm ("warm_seconds"). On a shared CPU set
+XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1" (no oversubscription).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ CONFIGS = [
     ("gp", {"target": "range", "nu": 1.5}),
     ("gp", {"target": "inv-log", "nu": 5.0 / 3.0}),
     ("gp", {"mean": "anchor"}),
+    ("gp", {"search": "gradient"}),
 ]
 
 
