@@ -5,22 +5,24 @@ Prints one JSON line per (nodes, cell size):
     .venv/bin/python benchmarks/pgp_speed.py --quick      # 12-node torgau at 0.25 m only
     .venv/bin/python benchmarks/pgp_speed.py              # 12/24/48 nodes x 0.5/0.25/0.1 m
 
-Keys: nodes, epochs, cells, cell_m, window_cells (W; the windows are W x W), hypotheses (max_hyp),
-pairs (pairs with a range per epoch, mean), device, compile_s (first call - best call of the fast
-path, whose chunk programs compile on first use),
-epochs_per_s (fast path over all `epochs`, best of `--repeats`, block_until_ready, compile apart),
-windowed_epochs, reference_epochs_per_s (the direct evaluation, `likelihood="direct"`, identical
-parameters and grid, on the first `ref_epochs` epochs), speedup (their ratio), rmse_diff_m and
-max_pos_diff_m (final-epoch RMSE against the truth and largest position difference, fast vs
-direct, both over the first `ref_epochs` epochs), ref_windowed_epochs (windowed epochs within
-those), loadavg (`os.getloadavg()` when the row finished) and cpus.
+Keys: nodes, epochs, cells, cell_m, window_cells (W; the windows are W x W), small_window_cells
+(the small windows tried first), hypotheses (max_hyp), pairs (pairs with a range per epoch, mean),
+device, compile_s (first call - best call of the fast path, whose chunk programs compile on first
+use), epochs_per_s (fast path over all `epochs`, best of `--repeats`, block_until_ready, compile
+apart), windowed_epochs (of which small_window_epochs ran on the small windows),
+reference_epochs_per_s (the direct evaluation, `likelihood="direct"`, identical parameters and
+grid, on the first `ref_epochs` epochs), speedup (their ratio), rmse_diff_m and max_pos_diff_m
+(final-epoch RMSE against the truth and largest position difference, fast vs direct, both over the
+first `ref_epochs` epochs), ref_windowed_epochs (windowed epochs within those), loadavg
+(`os.getloadavg()` when the row finished) and cpus.
 
 Scenarios: 12 nodes is `data/torgau.h5` (the simulated torgau scenario, seed 0) when present, else
 `simulate("torgau", 0)`. The simulator has no 24- or 48-node scenario: those rows add 12 or 36
 nodes at random positions (seed 1, >= 2 m apart) to the torgau hall, with torgau's walls, channel,
 never-measured and outlier pairs and `conf1` frame, through `simulate(..., node_ids=, positions=)`.
 Rows with 24 and 48 nodes run `--scale-epochs` epochs (the direct reference at 0.1 m with 48
-nodes costs about a minute per epoch on a 2-core CPU).
+nodes costs minutes per epoch on a 2-core CPU); rows at cells below 0.25 m run at most 2 repeats
+(the direct reference once).
 """
 
 from __future__ import annotations
@@ -135,6 +137,8 @@ def row(nodes, cell_m, epochs, ref_epochs, repeats, config="conf1"):
         "compile_s": round(compile_s, 2),
         "epochs_per_s": round(eps, 2),
         "windowed_epochs": int(np.asarray(out.windowed).sum()),
+        "small_window_epochs": int(np.asarray(out.small).sum()),
+        "small_window_cells": int(cfg.window_small),
         "reference_epochs_per_s": round(ref_eps, 4),
         "ref_epochs": int(k),
         "ref_windowed_epochs": int(np.asarray(out_f.windowed).sum()),
@@ -166,10 +170,11 @@ def main(argv=None) -> int:
         rows = [(int(n), float(c)) for n in a.nodes.split(",") for c in a.cells.split(",")]
     for nodes, cell in rows:
         epochs = a.epochs if nodes == 12 else a.scale_epochs
+        repeats = a.repeats if cell >= 0.25 else min(a.repeats, 2)
         # the direct reference costs ~ pairs x cells per epoch: fewer epochs where it is slow
         scale = (cell / 0.25) ** 2 * (12 / nodes) ** 2
         ref = min(a.ref_epochs, max(8, int(a.ref_epochs * scale)))
-        print(json.dumps(row(nodes, cell, epochs, ref, a.repeats)), flush=True)
+        print(json.dumps(row(nodes, cell, epochs, ref, repeats)), flush=True)
     return 0
 
 

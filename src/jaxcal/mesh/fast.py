@@ -41,6 +41,7 @@ __all__ = [
     "window_mask",
     "RING_SPAN",
     "ring_loglik",
+    "ring_loglik_grid",
 ]
 
 # log of the largest total posterior mass that may lie outside a node's window in a windowed epoch
@@ -178,6 +179,53 @@ def window_mask(mask: Bool[Array, "nx ny"], org: Int[Array, " 2"], w: int) -> Bo
     return jax.lax.dynamic_slice(mask, (org[0], org[1]), (w, w)).reshape(-1)
 
 
+def _ring_factor(
+    org: Int[Array, " 2"],
+    w: int,
+    grid: G.Grid,
+    hyp_pos: Float[Array, "hyp 2"],
+    hyp_logw: Float[Array, " hyp"],
+    sigma: Float[Array, ""],
+    z: Float[Array, ""],
+    p_out: Float[Array, ""],
+    nlos,
+    span: int,
+) -> tuple[Float[Array, "w w"], Bool[Array, ""]]:
+    """One pair of `ring_loglik`: the floored factor `(1 - p_out) f + p_out` on the window, and
+    whether it is exact (hypotheses within the S x S block, no factor below `RING_MIN_FACTOR`)."""
+    dtype = hyp_logw.dtype
+    s = span
+    hidx = jnp.round(hyp_pos / grid.cell_m).astype(jnp.int32) + grid.n_half  # (H, 2)
+    kept = jnp.isfinite(hyp_logw)
+    big = jnp.iinfo(jnp.int32).max
+    corner = jnp.min(jnp.where(kept[:, None], hidx, big), axis=0)  # (2,)
+    off = jnp.where(kept[:, None], hidx - corner[None, :], 0)  # (H, 2), >= 0
+    fits = jnp.all(jnp.where(kept[:, None], off < s, True))
+    wts = jnp.where(kept, jnp.exp(hyp_logw), 0.0)
+    # (S, S) weight image of the block (hypotheses outside it only matter when `fits` fails)
+    oh = jnp.arange(s)
+    img = jnp.einsum(
+        "h,ha,hb->ab",
+        wts,
+        (off[:, 0, None] == oh).astype(dtype),
+        (off[:, 1, None] == oh).astype(dtype),
+    )
+    # kernel image R[u, v] at offsets (org - corner - (S - 1) + (u, v)) cells from the block corner
+    u = jnp.arange(w + s - 1)
+    o = org - corner - (s - 1)
+    dx = ((o[0] + u) * grid.cell_m).astype(dtype)
+    dy = ((o[1] + u) * grid.cell_m).astype(dtype)
+    d = G.safe_norm(jnp.stack(jnp.broadcast_arrays(dx[:, None], dy[None, :]), axis=-1))
+    r = jnp.exp(G.range_kernel_log(z - d, sigma, nlos))
+    # hypothesis at block offset (a, b) reads R[p + S - 1 - a, q + S - 1 - b] for window cell (p, q)
+    f = jnp.zeros((w, w), dtype)
+    for a in range(s):
+        for b in range(s):
+            f = f + img[a, b] * r[s - 1 - a : s - 1 - a + w, s - 1 - b : s - 1 - b + w]
+    fac = (1.0 - p_out) * f + p_out
+    return fac, fits & (jnp.min(fac) > RING_MIN_FACTOR)
+
+
 def ring_loglik(
     org: Int[Array, " 2"],
     w: int,
@@ -213,38 +261,48 @@ def ring_loglik(
         neighbour's hypotheses do not fit in S x S cells or a factor fell below
         `RING_MIN_FACTOR` (linear-space underflow): the caller then uses `grid.node_loglik`.
     """
-    dtype = hyp_logw.dtype
-    s = span
-    hidx = jnp.round(hyp_pos / grid.cell_m).astype(jnp.int32) + grid.n_half  # (N, H, 2)
-    kept = jnp.isfinite(hyp_logw)
-    big = jnp.iinfo(jnp.int32).max
-    corner = jnp.min(jnp.where(kept[..., None], hidx, big), axis=1)  # (N, 2)
-    off = jnp.where(kept[..., None], hidx - corner[:, None, :], 0)  # (N, H, 2), >= 0
-    fits = jnp.all(jnp.where(kept[..., None], off < s, True), axis=(1, 2))
-    wts = jnp.where(kept, jnp.exp(hyp_logw), 0.0)
-    # (N, S, S) weight image of the block (hypotheses outside it only matter when `fits` fails)
-    oh = jnp.arange(s)
-    img = jnp.einsum(
-        "nh,nha,nhb->nab",
-        wts,
-        (off[..., 0, None] == oh).astype(dtype),
-        (off[..., 1, None] == oh).astype(dtype),
-    )
-    # kernel image R[u, v] at offsets (org - corner - (S - 1) + (u, v)) cells from the block corner
-    u = jnp.arange(w + s - 1)
-    o = org[None, :] - corner - (s - 1)  # (N, 2)
-    dx = ((o[:, 0, None] + u[None, :]) * grid.cell_m).astype(dtype)  # (N, L)
-    dy = ((o[:, 1, None] + u[None, :]) * grid.cell_m).astype(dtype)
-    d = G.safe_norm(jnp.stack(jnp.broadcast_arrays(dx[:, :, None], dy[:, None, :]), axis=-1))
     zs = jnp.where(use_i, z_i, 0.0)
-    r = jnp.exp(G.range_kernel_log(zs[:, None, None] - d, hyp_sigma[:, None, None], nlos))
-    # hypothesis at block offset (a, b) reads R[p + S - 1 - a, q + S - 1 - b] for window cell (p, q)
-    f = jnp.zeros((hyp_logw.shape[0], w, w), dtype)
-    for a in range(s):
-        for b in range(s):
-            sl = r[:, s - 1 - a : s - 1 - a + w, s - 1 - b : s - 1 - b + w]
-            f = f + img[:, a, b, None, None] * sl
-    fac = (1.0 - p_out) * f + p_out
-    ok = jnp.all(jnp.where(use_i, fits & (jnp.min(fac, axis=(1, 2)) > RING_MIN_FACTOR), True))
+    fac, ok = jax.vmap(_ring_factor, in_axes=(None, None, None, 0, 0, 0, 0, None, None, None))(
+        org, w, grid, hyp_pos, hyp_logw, hyp_sigma, zs, p_out, nlos, span
+    )
     ll = jnp.where(use_i[:, None, None], jnp.log(jnp.maximum(fac, RING_MIN_FACTOR)), 0.0)
-    return jnp.sum(ll, axis=0).reshape(-1), ok
+    return jnp.sum(ll, axis=0).reshape(-1), jnp.all(ok | ~use_i)
+
+
+def ring_loglik_grid(
+    grid: G.Grid,
+    hyp_pos: Float[Array, "nodes hyp 2"],
+    hyp_logw: Float[Array, "nodes hyp"],
+    hyp_sigma: Float[Array, " nodes"],
+    z_i: Float[Array, " nodes"],
+    use_i: Bool[Array, " nodes"],
+    p_out: Float[Array, ""],
+    nlos=None,
+    span: int = RING_SPAN,
+) -> Float[Array, " cells"]:
+    """`grid.node_loglik_sparse` on the whole grid, by `ring_loglik`'s kernel images: a loop over
+    neighbours skipping those without a range; a pair whose image is not exact (see
+    `ring_loglik`) is evaluated by `grid.pair_loglik`. Same arguments (but the grid for the cells),
+    same result up to rounding; not to be `vmap`ped (see `node_loglik_sparse`)."""
+    n, ns = hyp_logw.shape[0], grid.n_side
+    org = jnp.zeros((2,), jnp.int32)
+
+    def neighbour(j, acc):
+        def add(acc):
+            fac, ok = _ring_factor(
+                org, ns, grid, hyp_pos[j], hyp_logw[j], hyp_sigma[j], z_i[j], p_out, nlos, span
+            )
+
+            def direct():
+                cells = grid.cells(hyp_logw.dtype)
+                ll = G.pair_loglik(
+                    cells, hyp_pos[j], hyp_logw[j], z_i[j], hyp_sigma[j], p_out, nlos
+                )
+                return ll.reshape(ns, ns)
+
+            return acc + jax.lax.cond(ok, lambda: jnp.log(fac), direct)
+
+        return jax.lax.cond(use_i[j], add, lambda a: a, acc)
+
+    acc = jax.lax.fori_loop(0, n, neighbour, jnp.zeros((ns, ns), hyp_logw.dtype))
+    return acc.reshape(-1)

@@ -379,6 +379,8 @@ def _node_update(cfg, prm, cells, logp_i, mask_i, loc_i, hyps, z_i, use_i, step_
         logp_i,
     )
     lik = G.node_loglik if cfg.likelihood == "dense" else G.node_loglik_sparse
+    if cfg.window and cfg.mode == "pgp":  # the fast path's full-grid epochs: kernel images
+        lik = lambda _cells, *a: F.ring_loglik_grid(cfg.grid, *a)  # noqa: E731
     ll = lik(cells, hyps[0], hyps[1], hyps[2], z_i, use_i, prm.p_out, _nlos(cfg, prm))
     post = jnp.where(mask_i, prior + ll, -jnp.inf)
     lse = jax.nn.logsumexp(post)
