@@ -169,6 +169,41 @@ def test_recovers_known_network_bias(rng):
     assert aligned_rmse(ignored.position, truth) > 2 * aligned_rmse(sol.position, truth)
 
 
+def test_procrustes_rmse_equals_numpy_alignment(rng):
+    for dim in (2, 3):
+        ref = rng.normal(size=(N, dim))
+        x = ref @ np.linalg.qr(rng.normal(size=(dim, dim)))[0] + rng.normal(size=dim) + 0.1 * rng.normal(size=(N, dim))
+        r, t = align_rigid(x, ref, reflection=False)
+        want = np.sqrt(np.mean(np.sum((apply_rigid(x, r, t) - ref) ** 2, axis=1)))
+        assert abs(float(B._procrustes_rmse(jnp.asarray(x), jnp.asarray(ref))) - want) < 1e-9
+
+
+def test_bias_auto_keeps_a_clear_offset_and_records_the_choice(rng):
+    """A well-determined -0.2 m offset: the bootstrap predicts a far smaller error with it, and the
+    result equals bias=network; the choice is reported."""
+    truth = random_geometry(rng, 2)
+    r = ranges_of(truth, noise=0.01, offset=-0.2, rng=rng)
+    auto = B.solve(r, (0, 1, 2), B.BatchParams(bias="auto", summary="median", n_boot=4, **FAST))
+    net = B.solve(r, (0, 1, 2), B.BatchParams(bias="network", summary="median", **FAST))
+    assert auto.bias == "network" and auto.boot_rmse_m[0] < 0.5 * auto.boot_rmse_m[1]
+    # leaving out a 0.2 m offset shrinks the scene: the predicted error is about that size
+    assert 0.05 < auto.boot_rmse_m[1] < 0.5
+    np.testing.assert_allclose(auto.position, net.position, atol=1e-9)
+    assert np.isnan(net.boot_rmse_m).all() and net.bias == "network"
+
+
+def test_bias_auto_none_branch_equals_bias_none(rng):
+    """When the bootstrap drops the offset, the answer is the bias=none fit (offset 0)."""
+    truth = random_geometry(rng, 2)
+    r = ranges_of(truth, noise=0.05, rng=rng)  # no offset at all
+    auto = B.solve(r, (0, 1, 2), B.BatchParams(bias="auto", summary="median", n_boot=4, **FAST))
+    assert np.all(np.isfinite(auto.boot_rmse_m)) and auto.bias in ("network", "none")
+    other = B.solve(r, (0, 1, 2), B.BatchParams(bias=auto.bias, summary="median", **FAST))
+    np.testing.assert_allclose(auto.position, other.position, atol=1e-6)
+    if auto.bias == "none":
+        assert auto.offset_m == 0.0
+
+
 def test_irls_all_epochs_equals_direct_fit(rng):
     """The per-pair IRLS of summary=all reaches the minimiser of the full per-range robust cost."""
     truth = random_geometry(rng, 2)

@@ -46,3 +46,32 @@ def test_hybrid_keeps_pgp_track_and_refines():
     err = np.linalg.norm(res.position - truth, axis=1)
     assert np.all(err < 0.2), err  # 5 cm ranging noise, 3 % gross outliers: robust refinement lands close
     assert res.covariance.shape == (ds.n_nodes, 2, 2)
+
+
+def _median_cost(range_m, x, p):
+    """The batch solver's robust cost on the per-pair medians at positions x (any frame), offset 0."""
+    import jax.numpy as jnp
+
+    i, j, z, w = batch.observations(range_m, "median")
+    obs = batch.Observations(*(jnp.asarray(a) for a in (i, j, z, w)))
+    st = batch._State(jnp.asarray(x), jnp.zeros(()), jnp.zeros(x.shape[0]))
+    return float(batch._cost(st, (obs, batch._Numbers.of(p))))
+
+
+def test_hybrid_final_cost_not_above_pgp_and_error_not_worse():
+    """pgp's final positions (the last epoch of the kept track) are one of the refinement's starts: the
+    refined positions have a robust cost no higher than pgp's own, and (on this scene, 3 % gross
+    outliers) no larger error against truth."""
+    ds = _scene(seed=5, k=15)
+    over = {"pgp.cell_m": 0.5, "batch.bias": "none", "batch.summary": "median", "batch.n_starts": 2,
+            "batch.smacof_iters": 100}
+    res = hybrid.calibrate(ds, over)
+    x_pgp = res.track_position[-1]  # pgp's final estimate
+    p = batch.BatchParams(bias="none", summary="median")
+    c_h, c_p = _median_cost(ds.range, res.position, p), _median_cost(ds.range, x_pgp, p)
+    assert c_h <= c_p + 1e-9 * max(1.0, abs(c_p)), (c_h, c_p)
+    truth = to_frame(ds.truth, 0, 1, 2)
+    err_h = np.sqrt(np.mean(np.sum((res.position - truth) ** 2, axis=1)))
+    err_p = np.sqrt(np.mean(np.sum((x_pgp - truth) ** 2, axis=1)))
+    assert err_h <= err_p, (err_h, err_p)
+    assert res.params["batch.bias"] == "none"

@@ -40,7 +40,7 @@ from jaxcal.params import as_dict, with_overrides
 __all__ = ["BatchParams", "Observations", "BatchSolution", "observations", "solve", "calibrate", "LOSSES"]
 
 LOSSES = ("l2", "huber", "cauchy", "mixture")
-BIASES = ("none", "network", "node")
+BIASES = ("auto", "none", "network", "node")
 SUMMARIES = ("median", "all")
 INITS = ("multi", "cmds", "smacof")
 SOLVERS = ("lm", "gn")
@@ -55,7 +55,8 @@ class BatchParams(eqx.Module):
             `mixture` (LOS Gaussian + exponentially modified Gaussian NLOS + uniform outliers).
         sigma_r: ranging standard deviation / loss scale [m] (LOS width of the mixture).
         bias: range offset model: `none`, `network` (one common offset, default), `node` (common offset
-            plus one offset per node).
+            plus one offset per node), `auto` (`network` or `none`, whichever a residual bootstrap of the
+            network fit predicts to give the smaller position error; see `offset_bootstrap`).
         node_bias_sigma_m: prior standard deviation of the per-node offsets [m] (`bias=node`).
         summary: `all` (every range of every epoch, default; fitted by IRLS) or `median` (one robust
             range per pair).
@@ -67,7 +68,8 @@ class BatchParams(eqx.Module):
         solver: `lm` (Levenberg-Marquardt, default) or `gn` (Gauss-Newton).
         max_steps: iteration limit of the least-squares solver.
         tol: relative and absolute tolerance of the least-squares solver.
-        seed: random seed of the random starts.
+        seed: random seed of the random starts (and of the offset bootstrap).
+        n_boot: bootstrap replicates of `bias=auto`.
         gnc_stages: graduated non-convexity: the multi-start fit runs with loss scales
             sigma_r * 2^(G-1), ..., sigma_r (G stages; 1 = no graduation).
         relocate_rounds: rounds of single-node relocation after the multi-start fit: every node in
@@ -85,6 +87,7 @@ class BatchParams(eqx.Module):
     sigma_r: float = 0.2
     bias: str = "network"
     node_bias_sigma_m: float = 0.1
+    n_boot: int = 32
     summary: str = "all"
     nlos_weight: float = 0.2
     nlos_mean_m: float = 1.0
@@ -119,9 +122,9 @@ class BatchParams(eqx.Module):
         if self.nlos_weight + self.outlier_weight >= 1:
             raise JaxcalError("parameters nlos_weight + outlier_weight must be < 1")
         if min(self.n_starts, self.smacof_iters, self.relocate_rounds) < 0 or min(
-                self.max_steps, self.irls_iters, self.gnc_stages, self.relocate_grid) < 1:
+                self.max_steps, self.irls_iters, self.gnc_stages, self.relocate_grid, self.n_boot) < 1:
             raise JaxcalError("parameters n_starts, smacof_iters, relocate_rounds must be >= 0; "
-                              "max_steps, irls_iters, gnc_stages, relocate_grid >= 1")
+                              "max_steps, irls_iters, gnc_stages, relocate_grid, n_boot >= 1")
 
 
 class Observations(eqx.Module):
@@ -147,9 +150,13 @@ class BatchSolution(eqx.Module):
         covariance: (N, D, D) [m^2], NaN where undefined.
         offset_m: fitted common range offset c [m] (0 with `bias=none`).
         node_offset_m: (N,) fitted per-node offsets [m] (0 unless `bias=node`; NaN for inactive nodes).
-        cost: robust cost on the median summary after the multi-start fit and relocation.
+        cost: robust cost on the median summary after the multi-start fit and relocation (with the
+            network offset when `bias=auto`, so that costs of runs with other starts stay comparable).
         start_costs: (S,) robust cost reached from every start.
         residual_sigma_m: weighted residual standard deviation [m].
+        bias: the range offset model used (`bias=auto` resolved to `network` or `none`).
+        boot_rmse_m: (2,) bootstrap position RMSE [m] of the network-offset and the no-offset fit
+            (`bias=auto`; NaN otherwise).
     """
 
     position: np.ndarray
@@ -159,6 +166,8 @@ class BatchSolution(eqx.Module):
     cost: float
     start_costs: np.ndarray
     residual_sigma_m: float
+    bias: str = "network"
+    boot_rmse_m: np.ndarray = eqx.field(default_factory=lambda: np.full(2, np.nan))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -378,6 +387,64 @@ def _fit_starts(y0s: _State, obs: Observations, nb: _Numbers, solver: str, tol: 
     return jax.vmap(one)(y0s)
 
 
+def _procrustes_rmse(x: Array, ref: Array) -> Array:
+    """RMSE [m] of `x` after the best rigid motion (rotation and translation, no reflection) onto `ref`."""
+    xc, rc = x - jnp.mean(x, axis=0), ref - jnp.mean(ref, axis=0)
+    u, _, vt = jnp.linalg.svd(xc.T @ rc)
+    d = jnp.sign(jnp.linalg.det(u @ vt))
+    r = (u * jnp.concatenate([jnp.ones(x.shape[1] - 1), d[None]])) @ vt  # x @ r ~ ref
+    return jnp.sqrt(jnp.mean(jnp.sum((xc @ r - rc) ** 2, axis=1)))
+
+
+@eqx.filter_jit
+def offset_bootstrap(state: _State, obs: Observations, nb: _Numbers, key: Array, n_boot: int, solver: str,
+                     tol: float, max_steps: int) -> Array:
+    """Predicted position error of fitting the common range offset c or leaving it out (`bias=auto`).
+
+    A common offset is not always worth estimating: where the geometry is weak (e.g. nearly planar 3-D
+    scenes) c trades off against the poorly determined directions, and the variance its estimate adds
+    can exceed the bias of ignoring it. Which one wins is estimated by a residual bootstrap of the
+    network fit: replicate observations are the fitted model plus residuals resampled with replacement
+    (inflated for the degrees of freedom the fit used up); each replicate is refitted locally (from the fit) with and without c, and the rigidly aligned
+    position RMSE against the fitted positions is averaged.
+
+    Args:
+        state: the network-offset fit (positions (m, D), c, b).
+        obs: the observations it was fitted to (padding has weight 0 and is never resampled).
+        nb: the numbers of that fit (`use_c` = 1).
+        key: PRNG key; n_boot: replicates (static).
+
+    Returns:
+        (2,) RMSE [m] of (with offset, without offset), averaged over the replicates.
+    """
+    e = _errors(state, obs, nb)
+    model = obs.z - e
+    real = obs.w > 0
+    logits = jnp.where(real, 0.0, -jnp.inf)
+    # Fitted residuals are smaller than the errors by about sqrt((M - P) / M) (P fitted parameters):
+    # resample them inflated by the inverse (the usual correction of a regression residual bootstrap).
+    m, dim = state.x.shape
+    n_par = dim * m - dim * (dim + 1) // 2 + 1 + nb.use_b * m
+    n_obs = jnp.sum(real)
+    e_boot = e * jnp.sqrt(n_obs / jnp.maximum(n_obs - n_par, 1.0))
+    nb_none = eqx.tree_at(lambda t: t.use_c, nb, jnp.zeros_like(nb.use_c))
+    start_none = eqx.tree_at(lambda t: t.c, state, jnp.zeros_like(state.c))
+
+    def one(k):
+        pick = jax.random.categorical(k, logits, shape=e.shape)
+        zb = jnp.where(real, model + e_boot[pick], obs.z)
+        obs_b = Observations(obs.i, obs.j, zb, obs.w)
+
+        def fit(y0, nbk):
+            sol = optx.least_squares(_residuals, _solver(solver, tol), y0, (obs_b, nbk), max_steps=max_steps,
+                                     throw=False)
+            return _procrustes_rmse(sol.value.x, state.x) ** 2
+
+        return jnp.stack([fit(state, nb), fit(start_none, nb_none)])
+
+    return jnp.sqrt(jnp.mean(jax.vmap(one)(jax.random.split(key, n_boot)), axis=0))
+
+
 @eqx.filter_jit
 def _relocation_starts(state: _State, d: Array, w: Array, nb: _Numbers, grid_n: int) -> _State:
     """(m,) batched starts: start k is `state` with node k moved to the grid point of least robust cost
@@ -586,6 +653,17 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         if not moved_costs[k] < cost - 1e-9 * max(1.0, abs(cost)):
             break
         state, cost = jax.tree.map(lambda a: a[k], moved), float(moved_costs[k])
+    chosen, boot = ("network" if p.bias == "auto" else p.bias), np.full(2, np.nan)
+    if p.bias == "auto":
+        boot = np.asarray(offset_bootstrap(state, obs_med, nb, jax.random.fold_in(key, 7), p.n_boot, p.solver,
+                                           p.tol, p.max_steps))
+        if boot[1] < boot[0]:  # leaving the offset out is predicted to place the nodes better
+            chosen = "none"
+            nb = eqx.tree_at(lambda t: t.use_c, nb, jnp.zeros_like(nb.use_c))
+            start = eqx.tree_at(lambda t: t.c, state, jnp.zeros_like(state.c))
+            starts = jax.tree.map(lambda a: jnp.repeat(a[None], s_count, axis=0), start)
+            refit, _ = _fit_starts(starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc))
+            state = jax.tree.map(lambda a: a[0], refit)
     obs = obs_med
     if p.summary == "all":
         obs = to_obs(*observations(r, "all"))
@@ -630,11 +708,11 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     covariance = np.full((n, p.dim, p.dim), np.nan)
     covariance[sub] = cov_nodes
     node_off = np.full(n, np.nan)
-    node_off[sub] = np.asarray(state.b) if p.bias == "node" else 0.0
+    node_off[sub] = np.asarray(state.b) if chosen == "node" else 0.0
     return BatchSolution(
         position=position, covariance=covariance,
-        offset_m=float(state.c) if p.bias != "none" else 0.0, node_offset_m=node_off,
-        cost=cost, start_costs=costs, residual_sigma_m=float(np.sqrt(s2)),
+        offset_m=float(state.c) if chosen != "none" else 0.0, node_offset_m=node_off,
+        cost=cost, start_costs=costs, residual_sigma_m=float(np.sqrt(s2)), bias=chosen, boot_rmse_m=boot,
     )
 
 
@@ -669,6 +747,7 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
     p = with_overrides(BatchParams(), params)
     anchors = dataset.config(config)
     sol = solve(dataset.range, anchors, p, dataset.node_ids)
+    p = eqx.tree_at(lambda q: q.bias, p, sol.bias)  # record the offset model used
     return Result(
         ids=dataset.node_ids, position=sol.position, method="batch", dataset=dataset.name,
         frame="anchors:" + ",".join(str(a) for a in anchors), params=as_dict(p),

@@ -19,6 +19,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+import equinox as eqx
 import numpy as np
 
 from jaxcal.data import MeshDataset, Result
@@ -72,6 +73,7 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
     res_pgp, _ = pgp.run_pgp(dataset, p_over, config)
     anchors = dataset.config(config)
     sol = batch.solve(dataset.range, anchors, b, dataset.node_ids, extra_starts=res_pgp.position[None])
+    b = eqx.tree_at(lambda q: q.bias, b, sol.bias)  # record the offset model used (bias=auto resolved)
     position = sol.position
     covariance = sol.covariance
     # Nodes the batch fit cannot place (not connected to a0) keep the PGP estimate and covariance.
