@@ -8,6 +8,10 @@ a LOS / NLOS / outlier mixture). The fit minimises `sum rho(e)` with Optimistix 
 (Levenberg-Marquardt or Gauss-Newton) on "square-root" residuals `sign(e) sqrt(2 rho(e))`, whose
 Gauss-Newton gradient equals the gradient of the robust cost.
 
+`bias="auto"` fits the network offset and then keeps it only if a residual bootstrap predicts a smaller
+position error with it than without (`offset_bootstrap`): in weak geometries (nearly planar 3-D scenes) the
+offset trades off against the poorly determined directions, and its estimate can cost more than it removes.
+
 Observations are either one robust summary per pair (`summary="median"`: the median over epochs of
 each direction, then the mean of the two directions) or every single range (`summary="all"`).
 
