@@ -27,7 +27,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "stats": ("stats", "ranging error statistics by LOS / NLOS (Table I)"),
     "evaluate": ("evaluate", "compare a result with the ground truth of a dataset"),
     "gate": ("gate", "UWB range-zone gated place recognition (--simulate DIR for a demo yard)"),
-    "tune": ("tune", "fit sigma_r, sigma_v and tau of the PGP filter by gradient (truth or evidence)"),
+    "tune": (
+        "tune",
+        "fit sigma_r, sigma_v, tau (and nlos_weight, nlos_mean_m with --set range_model=mixture)"
+        " of the PGP filter by gradient (truth or evidence)",
+    ),
     "sweep": ("sweep", "run a parameter x scenario x seed grid of the PGP filter (vmapped, sharded, resumable)"),
     "report": ("report", "write figures and an index.html of results against the truth, and of sweeps"),
 }
