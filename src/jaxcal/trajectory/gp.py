@@ -369,6 +369,32 @@ def search_anchor(
     return c, covs[-1]
 
 
+def _range_sd(mu, var, target):
+    """Posterior sd of the GP target mapped to metres (delta method for `inv-log`)."""
+    if target == "range":
+        return jnp.sqrt(var)
+    return jnp.abs(jax.grad(lambda y: from_target(y, "inv-log"))(mu)) * jnp.sqrt(var)
+
+
+def range_consistency(
+    post: _Posterior,
+    x: Float[Array, "n 3"],
+    mask: Bool[Array, " n"],
+    target: str,
+    anchor: Float[Array, " 3"],
+) -> Float[Array, ""]:
+    """How well an anchor explains the GP's range field: median |e_i - median(e)| over the inputs,
+    e_i = r(p_i) - |p_i - a| with r the posterior mean range (a constant bias costs nothing) [m].
+
+    Args:
+        post: GP posterior. x: (n, 3) training inputs [m]. mask: (n,) valid. target: GP target.
+        anchor: (3,) candidate [m] (frame of `post`).
+    """
+    r = from_target(predict(post, x), target)
+    e = jnp.where(mask, r - _cone(x, anchor), jnp.nan)
+    return jnp.nanmedian(jnp.abs(e - jnp.nanmedian(e)))
+
+
 def gradient_step(
     post: _Posterior,
     x: Float[Array, "n 3"],
@@ -396,6 +422,10 @@ def gradient_step(
     Returns:
         (estimate (3,), sample covariance (3, 3) of the candidates, the best training input (3,)).
     """
+    return _gradient_candidates(post, x, mask, target, top_k, planar, side)[:3]
+
+
+def _gradient_candidates(post, x, mask, target, top_k, planar, side):
     y, gy = jax.vmap(jax.value_and_grad(lambda q: predict(post, q[None])[0]))(x)
     r = from_target(y, target)
     dr = jax.vmap(jax.grad(lambda v: from_target(v, target)))(y)
@@ -416,7 +446,8 @@ def gradient_step(
     nw = jnp.maximum(jnp.sum(w), 1.0)
     est = jnp.sum(cand * w[:, None], axis=0) / nw
     d = (cand - est) * w[:, None]
-    return est, d.T @ d / jnp.maximum(nw - 1.0, 1.0), p[0]
+    cand = jnp.where(w[:, None] > 0, cand, jnp.nan)  # padding: never chosen downstream
+    return est, d.T @ d / jnp.maximum(nw - 1.0, 1.0), p[0], cand
 
 
 # ------------------------------------------------------------------------------------ subsample
@@ -557,27 +588,31 @@ def _calibrate_all(x, r, mask, centre, half, planar, p: GPParams, n_rounds: int,
         init = Hyper(jnp.log(jnp.maximum(0.3 * ext, 1e-2)), jnp.log(var_y), jnp.log(0.01 * var_y))
         h = fit_hyper(xc, yc, m, init, p.nu, p.jitter, p.max_steps)
         post = _posterior(h, xc, yc, m, mean, p.nu, p.jitter)
-        if p.search == "gradient":
-            est, cov, pt = gradient_step(post, xc, m, p.target, p.top_k, pl, p.side)
-        else:
-            est, cov = search_anchor(
-                post, c0 - origin, h0, p.target, p.grid, p.top_k, p.shrink, n_rounds, grid_z
-            )
-            pt = est
+        est, cov = search_anchor(
+            post, c0 - origin, h0, p.target, p.grid, p.top_k, p.shrink, n_rounds, grid_z
+        )
+        pt = est
         mu, var = predict(post, pt[None], with_var=True)
         d_hat = from_target(mu[0], p.target)
-        if p.target == "range":
-            sd = jnp.sqrt(var[0])
-        else:
-            dd = jax.grad(lambda y: from_target(y, "inv-log"))(mu[0])
-            sd = jnp.abs(dd) * jnp.sqrt(var[0])
+        sd = _range_sd(mu[0], var[0], p.target)
         # Clip to the anchor's range span: far from the data an inv-log prediction near 0 maps to
         # an enormous range.
         r_max = jnp.max(jnp.where(m, r, 0.0))
         height = jnp.clip(d_hat, 0.0, r_max)
         sd = jnp.minimum(sd, r_max)
-        if p.search != "gradient":  # the gradient step places the height itself
-            est = jnp.where(pl, est.at[2].set(est[2] + p.side * height), est)
+        est = jnp.where(pl, est.at[2].set(est[2] + p.side * height), est)
+        if p.search == "gradient":
+            est_g, cov_g, pt_g, cands = _gradient_candidates(
+                post, xc, m, p.target, p.top_k, pl, p.side
+            )
+            # The eikonal step is local (it trusts the GP's gradient at a few inputs); keep the
+            # candidate, the cuboid answer included, most consistent with the whole range field.
+            options = jnp.concatenate([est_g[None], est[None], cands])
+            score = jax.vmap(lambda a: range_consistency(post, xc, m, p.target, a))(options)
+            best = jnp.argmin(jnp.where(jnp.isfinite(score), score, jnp.inf))
+            mu, var = predict(post, pt_g[None], with_var=True)
+            sd = jnp.minimum(_range_sd(mu[0], var[0], p.target), r_max)
+            est, cov = options[best], cov_g
         return est + origin, cov + sd**2 * jnp.eye(3), h
 
     # lax.map, not vmap: batched triangular solves (Cholesky gradients) are far slower on CPU than a
