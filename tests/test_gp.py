@@ -292,3 +292,18 @@ def test_gradient_step_equals_numpy_finite_differences(planar):
 def test_gp_bad_search_is_a_clear_error():
     with pytest.raises(JaxcalError, match="search"):
         gp.calibrate(drone(), {"search": "grid"})
+
+
+def test_range_consistency_equals_numpy():
+    rng = np.random.default_rng(8)
+    n = 30
+    x = rng.uniform(-4, 4, (n + 3, 3))
+    r = rng.uniform(1.0, 6.0, n + 3)
+    mask = np.arange(n + 3) < n
+    h = gp.Hyper(jnp.log(2.0), jnp.log(1.5), jnp.log(0.05))
+    post = gp._posterior(h, jnp.asarray(x), jnp.asarray(r - 3.0), jnp.asarray(mask), 3.0, 1.5, 0.0)
+    a = np.array([0.5, 1.0, 2.0])
+    got = float(gp.range_consistency(post, jnp.asarray(x), jnp.asarray(mask), "range", a))
+    f = _post_numpy(x[:n], r[:n] - 3.0, 2.0, 1.5, 0.05, 1.5)
+    e = np.array([f(q) + 3.0 for q in x[:n]]) - np.linalg.norm(x[:n] - a, axis=1)
+    assert got == pytest.approx(np.median(np.abs(e - np.median(e))), abs=1e-9)

@@ -42,8 +42,11 @@ covered (and a planar route then puts the whole range into the height). `gradien
 uses the eikonal property of a range field, |grad r| = 1 with grad r pointing away from the anchor:
 from each of the `top_k` training inputs with the smallest predicted range, a = p - r(p) grad r(p)
 with r and grad r from the GP posterior mean (autodiff of the kernel), read where the GP is
-supported by data; the estimate is the candidates' mean and its covariance their spread plus the
-posterior variance term below.
+supported by data. The step is local (a few gradients; sparse inputs such as hymn's 48 survey
+points can give a wrong one), so the answer is the option most consistent with the GP's whole
+range field (`range_consistency`: robust spread of r(p_i) - |p_i - a| over the inputs) among the
+candidates' mean, each candidate and the cuboid search's answer; its covariance is the candidates'
+spread plus the posterior variance term below.
 
 Covariance of an estimate: the sample covariance of the top-k samples of the last round plus the
 GP's posterior variance of the range at the estimate times the identity (for `inv-log`, mapped to
@@ -92,6 +95,7 @@ __all__ = [
     "predict",
     "search_anchor",
     "gradient_step",
+    "range_consistency",
     "stratified_subsample",
     "to_target",
     "from_target",
@@ -124,7 +128,8 @@ class GPParams(TrajectoryParams):
         search: `cuboid` (the paper: extremum of the GP mean by the iterative cuboid search) or
             `gradient` (eikonal step a = p - r grad r from the `top_k` training inputs with the
             smallest predicted range, `gradient_step`; the anchor may lie outside the covered
-            region).
+            region), keeping the option (candidates' mean, each candidate, the cuboid answer) most
+            consistent with the GP's range field (`range_consistency`).
         min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s, max_gap_s, time_offset_s,
         estimate_offset, max_offset_s: as for `ls`.
     """
