@@ -204,6 +204,42 @@ def test_bias_auto_none_branch_equals_bias_none(rng):
         assert auto.offset_m == 0.0
 
 
+def test_spread_weights_reference(rng):
+    """Weights 1 / (1 + (s / s0)^2) from the std of each pair's pooled ranges (both directions)."""
+    n, k = 5, 6
+    r = 10.0 + rng.normal(0, 0.05, (k, n, n))
+    r[:, 1, 3] += rng.normal(0, 0.5, k)  # one direction of one pair scatters
+    r[:, np.arange(n), np.arange(n)] = np.nan
+    r[:, 0, 4] = r[:, 4, 0] = np.nan  # never measured
+    w = B.spread_weights(r)
+    s = np.full((n, n), np.nan)
+    for a in range(n):
+        for b in range(n):
+            v = np.concatenate([r[:, a, b], r[:, b, a]])
+            v = v[np.isfinite(v)]
+            if a != b and v.size > 1:
+                s[a, b] = np.std(v, ddof=1)
+    s0 = np.nanmedian(s[~np.eye(n, dtype=bool)])
+    ref = np.where(np.isfinite(s), 1 / (1 + (s / s0) ** 2), 1.0)
+    np.testing.assert_allclose(w, ref, rtol=1e-12)
+    np.testing.assert_allclose(w, w.T)
+    assert w[1, 3] < 0.1 and w[0, 4] == 1.0
+    # constant ranges: no scale, every weight 1
+    assert np.all(B.spread_weights(np.where(np.isfinite(r), 10.0, np.nan)) == 1.0)
+
+
+def test_spread_weights_discount_a_scattering_biased_pair(rng):
+    """A pair that scatters and is biased (multipath) pulls the fit less with pair_weight=spread."""
+    truth = random_geometry(rng, 2)
+    r = ranges_of(truth, k=8, noise=0.03, rng=rng)
+    r[:, 3, 4] += 0.8 + rng.normal(0, 0.4, 8)  # biased and scattering, both directions
+    r[:, 4, 3] += 0.8 + rng.normal(0, 0.4, 8)
+    p = dict(bias="none", summary="median", loss="l2", **FAST)
+    plain = B.solve(r, (0, 1, 2), B.BatchParams(**p))
+    weighted = B.solve(r, (0, 1, 2), B.BatchParams(pair_weight="spread", **p))
+    assert aligned_rmse(weighted.position, truth) < 0.5 * aligned_rmse(plain.position, truth)
+
+
 def test_irls_all_epochs_equals_direct_fit(rng):
     """The per-pair IRLS of summary=all reaches the minimiser of the full per-range robust cost."""
     truth = random_geometry(rng, 2)
@@ -274,6 +310,10 @@ def test_bad_parameters_rejected():
         B.BatchParams(loss="tukey")
     with pytest.raises(JaxcalError, match="dim"):
         B.BatchParams(dim=4)
+    with pytest.raises(JaxcalError, match="pair_weight"):
+        B.BatchParams(pair_weight="rssi")
+    with pytest.raises(JaxcalError, match="bias"):
+        B.BatchParams(bias="per-pair")
 
 
 # ---------------------------------------------------------------------------------------------- CLI

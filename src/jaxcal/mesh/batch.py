@@ -48,6 +48,7 @@ BIASES = ("auto", "none", "network", "node")
 SUMMARIES = ("median", "all")
 INITS = ("multi", "cmds", "smacof")
 SOLVERS = ("lm", "gn")
+PAIR_WEIGHTS = ("none", "spread")
 
 
 class BatchParams(eqx.Module):
@@ -74,6 +75,8 @@ class BatchParams(eqx.Module):
         tol: relative and absolute tolerance of the least-squares solver.
         seed: random seed of the random starts (and of the offset bootstrap).
         n_boot: bootstrap replicates of `bias=auto`.
+        pair_weight: `none` (every pair counts alike) or `spread` (pairs whose ranges scatter more, over
+            epochs and between the two directions, count less; see `spread_weights`).
         gnc_stages: graduated non-convexity: the multi-start fit runs with loss scales
             sigma_r * 2^(G-1), ..., sigma_r (G stages; 1 = no graduation).
         relocate_rounds: rounds of single-node relocation after the multi-start fit: every node in
@@ -92,6 +95,7 @@ class BatchParams(eqx.Module):
     bias: str = "network"
     node_bias_sigma_m: float = 0.1
     n_boot: int = 32
+    pair_weight: str = "none"
     summary: str = "all"
     nlos_weight: float = 0.2
     nlos_mean_m: float = 1.0
@@ -112,7 +116,7 @@ class BatchParams(eqx.Module):
 
     def __check_init__(self):
         for name, allowed in (("loss", LOSSES), ("bias", BIASES), ("summary", SUMMARIES),
-                              ("init", INITS), ("solver", SOLVERS)):
+                              ("init", INITS), ("solver", SOLVERS), ("pair_weight", PAIR_WEIGHTS)):
             if getattr(self, name) not in allowed:
                 raise JaxcalError(f"parameter {name}: expected one of {', '.join(allowed)}, got {getattr(self, name)!r}")
         if self.dim not in (2, 3):
@@ -204,6 +208,33 @@ def observations(range_m: np.ndarray, summary: str) -> tuple[np.ndarray, np.ndar
     k, ii, jj = np.nonzero(np.isfinite(r))
     ok = ii != jj
     return ii[ok], jj[ok], r[k[ok], ii[ok], jj[ok]], np.ones(int(ok.sum()))
+
+
+def spread_weights(range_m: np.ndarray) -> np.ndarray:
+    """Per-pair weights from the scatter of the pair's own ranges (`pair_weight=spread`).
+
+    On real DWM1001 meshes the pairs whose ranges scatter most (over epochs, and between the i->j and
+    j->i directions) are also the ones whose median is furthest from the true distance (multipath), so
+    the spread is used as the pair's error scale: w = 1 / (1 + (s / s0)^2), s the standard deviation of
+    the pooled ranges of both directions and s0 the median of s over all pairs (no scale to set).
+
+    Args:
+        range_m: (K, N, N) ranges [m], NaN = missing.
+
+    Returns:
+        (N, N) symmetric weights in (0, 1] (1 where a pair has a single range or s0 is 0).
+    """
+    r = np.asarray(range_m, dtype=np.float64)
+    pooled = np.concatenate([r, np.swapaxes(r, 1, 2)], axis=0)
+    cnt = np.isfinite(pooled).sum(axis=0)
+    mean = np.nansum(pooled, axis=0) / np.maximum(cnt, 1)
+    var = np.nansum((pooled - mean) ** 2, axis=0) / np.maximum(cnt - 1, 1)
+    s = np.where(cnt > 1, np.sqrt(var), np.nan)
+    off = ~np.eye(r.shape[1], dtype=bool) & np.isfinite(s)
+    s0 = float(np.median(s[off])) if off.any() else 0.0
+    if not s0 > 0:
+        return np.ones(r.shape[1:])
+    return np.where(np.isfinite(s), 1.0 / (1.0 + (s / s0) ** 2), 1.0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -600,6 +631,9 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     ids = node_ids or tuple(str(k) for k in range(n))
     a0, a1, a2 = anchors
     i_m, j_m, z_m, w_m = observations(r, "median")
+    pw = spread_weights(r) if p.pair_weight == "spread" else None
+    if pw is not None:
+        w_m = pw[i_m, j_m]
     if z_m.size == 0:
         raise JaxcalError("batch: the dataset has no finite ranges")
     active = _active_nodes(i_m, j_m, n, a0)
@@ -670,7 +704,8 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
             state = jax.tree.map(lambda a: a[0], refit)
     obs = obs_med
     if p.summary == "all":
-        obs = to_obs(*observations(r, "all"))
+        i_a, j_a, z_a, w_a = observations(r, "all")
+        obs = to_obs(i_a, j_a, z_a, w_a if pw is None else pw[i_a, j_a])
         oi, oj = np.asarray(obs.i), np.asarray(obs.j)
         key_pair = np.minimum(oi, oj) * m + np.maximum(oi, oj)  # padding maps to pair (0, 0), weight 0
         uniq, pair_of_obs = np.unique(key_pair, return_inverse=True)
