@@ -307,3 +307,25 @@ def test_range_consistency_equals_numpy():
     f = _post_numpy(x[:n], r[:n] - 3.0, 2.0, 1.5, 0.05, 1.5)
     e = np.array([f(q) + 3.0 for q in x[:n]]) - np.linalg.norm(x[:n] - a, axis=1)
     assert got == pytest.approx(np.median(np.abs(e - np.median(e))), abs=1e-9)
+
+
+def test_cone_spread_ignores_a_constant_bias():
+    rng = np.random.default_rng(9)
+    pos = rng.uniform(-5, 5, (1, 50, 3))
+    a = np.array([[1.0, 2.0, 3.0]])
+    r = np.linalg.norm(pos - a[:, None], axis=-1) + 0.4
+    mask = np.ones((1, 50), bool)
+    assert gp.cone_spread(pos, r, mask, a)[0] == pytest.approx(0.0, abs=1e-12)
+    assert gp.cone_spread(pos, r, mask, a + 1.0)[0] > 0.1
+    assert np.isnan(gp.cone_spread(pos, r, np.zeros((1, 50), bool), a)[0])
+
+
+def test_anchor_mean_falls_back_to_nls_when_geometry_is_worse():
+    """With a zero tolerance every anchor falls back: the result is the nls estimate exactly."""
+    from jaxcal.trajectory import nls
+
+    ds = drone(noise=0.05)
+    res = gp.calibrate(ds, {"n_train": 40, "mean": "anchor", "max_spread_ratio": 1e-9})
+    ref = nls.calibrate(ds)
+    assert res.params["info_fallback_nls"] == [True, True]
+    np.testing.assert_allclose(res.position, ref.position, atol=1e-9)

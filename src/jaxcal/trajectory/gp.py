@@ -63,7 +63,10 @@ BFGS, initialised from `nls` on all ranges), and f absorbs spatially correlated 
 bias along stretches of the route). The estimate is a; its covariance is the anchor block of the
 inverse Hessian of the negative log marginal likelihood (eigenvalues taken in absolute value and
 floored, so a flat or saddle direction gives a large variance, never a negative one). One stage, the
-same stratified subsample; no cuboid search.
+same stratified subsample; no cuboid search. Guard: a smooth f can absorb the geometry and let the
+anchor run away (one hymn anchor did); an anchor whose robust range-residual spread over all its
+ranges (`cone_spread`) exceeds `max_spread_ratio` times that of the nls start falls back to nls
+(`info_fallback_nls` in the result's params says which).
 
 tinygp is not used: it would add a dependency for a dense GP with one kernel, and its Matern kernels
 are the half-integer ones only (no nu = 5/3).
@@ -102,6 +105,7 @@ __all__ = [
     "MeanModel",
     "mean_model_nlml",
     "fit_mean_model",
+    "cone_spread",
     "calibrate",
 ]
 
@@ -130,6 +134,10 @@ class GPParams(TrajectoryParams):
             smallest predicted range, `gradient_step`; the anchor may lie outside the covered
             region), keeping the option (candidates' mean, each candidate, the cuboid answer) most
             consistent with the GP's range field (`range_consistency`).
+        max_spread_ratio: `mean=anchor` only: fall back to the `nls` start (and its covariance)
+            for an anchor whose fitted position explains all its ranges clearly worse than the
+            start: robust spread of r - |p - a| (`cone_spread`) above this many times nls's
+            (0 = never; the fit diverged when f absorbed the geometry).
         min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s, max_gap_s, time_offset_s,
         estimate_offset, max_offset_s: as for `ls`.
     """
@@ -149,6 +157,7 @@ class GPParams(TrajectoryParams):
     margin_m: float = 5.0
     stages: int = 2
     search: str = "cuboid"
+    max_spread_ratio: float = 3.0
 
 
 # ---------------------------------------------------------------------------------------- kernel
@@ -734,13 +743,30 @@ def calibrate(dataset, params=None, config=None) -> Result:
     return finish(dataset, "gp", p, kept, est, cov, info)
 
 
+def cone_spread(pos, rng_m, mask, anchor) -> np.ndarray:
+    """Robust spread of the range residuals e = r - |p - a| per anchor, median |e - median(e)| [m]
+    (a constant range bias costs nothing); NaN for an anchor without ranges or estimate.
+
+    Args:
+        pos: (A, n, 3) tag positions [m]. rng_m: (A, n) ranges [m]. mask: (A, n) valid.
+        anchor: (A, 3) anchor positions [m].
+    """
+    pos, rng_m, mask, anchor = map(np.asarray, (pos, rng_m, mask, anchor))
+    out = np.full(pos.shape[0], np.nan)
+    for a in range(pos.shape[0]):
+        if mask[a].any() and np.isfinite(anchor[a]).all():
+            e = rng_m[a, mask[a]] - np.linalg.norm(pos[a, mask[a]] - anchor[a], axis=1)
+            out[a] = np.median(np.abs(e - np.median(e)))
+    return out
+
+
 def _calibrate_anchor_mean(dataset, p: GPParams, groups, info, n: int, planar) -> Result:
     """`mean=anchor`: `nls` on all ranges to start, then the mean-model GP on a stratified set."""
     from jaxcal.trajectory import nls
     from jaxcal.trajectory.poses import AnchorRanges
 
     shared = {k: getattr(p, k) for k in ("min_ranges", "planar_tol_m", "planar_ratio", "side")}
-    a0, _, b0 = nls._solve_all(
+    a0, cov0, b0 = nls._solve_all(
         groups.position, groups.range, groups.mask, with_overrides(nls.NLSParams(), shared)
     )
     pos = np.asarray(groups.position)
@@ -761,11 +787,28 @@ def _calibrate_anchor_mean(dataset, p: GPParams, groups, info, n: int, planar) -
         if not np.isfinite(a0[a]).all():
             a0[a] = pos[a, sel].mean(axis=0)
             b0[a] = 0.0
+    a_nls = a0.copy()
     est, cov, hyp, bias = _calibrate_mean(
         jnp.asarray(x), jnp.asarray(r), jnp.asarray(m), jnp.asarray(a0), jnp.asarray(b0), p
     )
+    est, cov, bias = np.array(est), np.array(cov), np.array(bias)
+    spread_gp = cone_spread(pos, rng_m, mask, est)
+    spread_nls = cone_spread(pos, rng_m, mask, a_nls)
+    # Guard: f can absorb the geometry (a far anchor's cone is nearly a plane, and a smooth f
+    # trades off against it), letting the anchor run away; such an anchor no longer explains the
+    # ranges geometrically. Fall back to the nls start when it is clearly worse at that.
+    fallback = np.isfinite(a_nls).all(axis=1) & (
+        ~np.isfinite(est).all(axis=1)
+        | ((p.max_spread_ratio > 0) & (spread_gp > p.max_spread_ratio * spread_nls))
+    )
+    est[fallback] = a_nls[fallback]
+    cov[fallback] = np.asarray(cov0)[fallback]
+    bias[fallback] = np.asarray(b0)[fallback]
     info = dict(
         info,
+        fallback_nls=fallback.tolist(),
+        cone_spread_m=spread_gp.tolist(),
+        nls_cone_spread_m=spread_nls.tolist(),
         planar=planar.tolist(),
         bias_m=np.asarray(bias).tolist(),
         length_m=np.exp(np.asarray(hyp.log_length)).tolist(),
