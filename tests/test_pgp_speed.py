@@ -158,8 +158,8 @@ def test_host_chunked_driver_equals_one_scan(jump_runs):
     np.testing.assert_allclose(np.exp(st.logpost), np.exp(st_w.logpost), atol=1e-12)
 
 
-# small windows of 3 m (W = 12) inside the 4 m ones (W = 16): with sigma_v = 0.12 m every windowed
-# epoch holds the small window's bound; with 0.2 m it never does (each windowed epoch runs on the
+# small windows of 3 m (W = 12) inside the 4 m ones (W = 16): with sigma_v = 0.12 m most windowed
+# epochs hold the small window's bound; with 0.2 m none does (each windowed epoch runs on the
 # big window) and the jump of node 4 also sends epochs back to the full grid
 BRANCHES = {
     "small": dict(sigma_v=0.12, window_small_m=3.0),
@@ -183,7 +183,8 @@ def test_each_window_branch_equals_direct(branch_runs):
     used, small = np.asarray(out_w.windowed), np.asarray(out_w.small)
     assert not (small & ~used).any()
     if name.startswith("small"):
-        assert small[6:].all(), small
+        # tried only with room to spare (`fast.SMALL_WINDOW_MARGIN`), so not in every epoch
+        assert small.sum() >= (1 if "mixture" in name else 5), small
     else:
         first = int(np.argmax(used))
         assert used.sum() >= 4 and not small.any(), (used, small)

@@ -46,6 +46,9 @@ __all__ = [
 
 # log of the largest total posterior mass that may lie outside a node's window in a windowed epoch
 WINDOW_LOG_TOL = -30.0
+# the next epoch tries the small window only when this epoch's small-window bound is this many nats
+# below WINDOW_LOG_TOL (a try that fails is re-run on the big window: twice the work)
+SMALL_WINDOW_MARGIN = 4.0
 # S of `ring_loglik`: a neighbour's kept hypotheses must lie in an S x S block of cells
 RING_SPAN = 5
 # `ring_loglik` sums eq. (11)'s kernel in linear space; a factor below this could have lost

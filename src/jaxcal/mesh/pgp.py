@@ -501,7 +501,9 @@ def _window_epoch(
     bound = bound.at[1].set(-jnp.inf)
     small = small.at[1].set(-jnp.inf)
     ok = jnp.all(bound + log_cells < F.WINDOW_LOG_TOL)
-    small_next = bool(cfg.window_small) & jnp.all(small + log_cells < F.WINDOW_LOG_TOL)
+    # try the small window next only with room to spare: a failed try costs a second epoch
+    tol = F.WINDOW_LOG_TOL - F.SMALL_WINDOW_MARGIN
+    small_next = bool(cfg.window_small) & jnp.all(small + log_cells < tol)
     return win, org_b, bound, ev, raw, row, ok, small_next
 
 
