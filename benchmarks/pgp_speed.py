@@ -45,6 +45,7 @@ import numpy as np  # noqa: E402
 
 from jaxcal.mesh import pgp  # noqa: E402
 from jaxcal.mesh.frame import to_frame  # noqa: E402
+from jaxcal.params import parse_set, with_overrides  # noqa: E402
 from jaxcal.sim.mesh import SCENARIOS, simulate  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -95,10 +96,10 @@ def final_rmse(est, truth):
     return float(np.sqrt(np.mean(np.sum((est[ok] - truth[ok]) ** 2, axis=1))))
 
 
-def row(nodes, cell_m, epochs, ref_epochs, repeats, config="conf1"):
+def row(nodes, cell_m, epochs, ref_epochs, repeats, config="conf1", overrides=None):
     ds = scenario(nodes, epochs)
     a = ds.config(config)
-    p = pgp.PGPParams(cell_m=cell_m)
+    p = with_overrides(pgp.PGPParams(cell_m=cell_m), overrides or {})
     cfg, prm, inp, lp0, order = pgp.prepare(ds, p, config)
     # the fast path is driven from the host in chunks (`pgp.run_chunked`, what `run_pgp` runs):
     # it compiles a few chunk programs on first use, so compile_s = first call - best call
@@ -161,6 +162,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scale-epochs", type=int, default=300, help="epochs of 24/48-node rows")
     ap.add_argument("--ref-epochs", type=int, default=20, help="epochs of the direct reference")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="PGP parameter override for every row (e.g. window_small_m=3.5)")
     a = ap.parse_args(argv)
     if a.quick:
         rows = [(12, 0.25)]
@@ -174,7 +177,8 @@ def main(argv=None) -> int:
         # the direct reference costs ~ pairs x cells per epoch: fewer epochs where it is slow
         scale = (cell / 0.25) ** 2 * (12 / nodes) ** 2
         ref = min(a.ref_epochs, max(8, int(a.ref_epochs * scale)))
-        print(json.dumps(row(nodes, cell, epochs, ref, repeats)), flush=True)
+        rec = row(nodes, cell, epochs, ref, repeats, overrides=parse_set(a.set))
+        print(json.dumps({**rec, "set": a.set}), flush=True)
     return 0
 
 
