@@ -43,12 +43,20 @@ seeds = [0, 1]
 N_RUNS = 12
 
 
-def test_metrics_equal_single_runs_and_evaluate():
+@pytest.mark.parametrize(
+    "extra, grid",
+    [
+        ({}, {"sigma_r": [0.4, 1.5], "tau": [0.6, 0.95]}),
+        # the NLOS mixture kernel's parameters are swept like sigma_r
+        ({"range_model": "mixture"}, {"nlos_weight": [0.1, 0.4], "nlos_mean_m": [0.5, 2.0]}),
+    ],
+)
+def test_metrics_equal_single_runs_and_evaluate(extra, grid):
     doc = {
         "epochs": 12,
         "batch_size": 4,
-        "params": FIXED,
-        "grid": {"sigma_r": [0.4, 1.5], "tau": [0.6, 0.95]},
+        "params": {**FIXED, **extra},
+        "grid": grid,
         "scenarios": [{"simulate": "small", "config": "conf1", "seeds": [3]}],
     }
     spec = S.parse_spec(doc)
@@ -63,7 +71,7 @@ def test_metrics_equal_single_runs_and_evaluate():
 
     w = window(ds, 12)
     for r in range(pl.n_runs):
-        p = {**FIXED, "sigma_r": pl.values["sigma_r"][r], "tau": pl.values["tau"][r]}
+        p = {**FIXED, **extra, **{k: pl.values[k][r] for k in grid}}
         res, _ = run_pgp(w, p, "conf1")
         ev = evaluate_mesh(res, w)
         np.testing.assert_allclose(got["rmse_m"][r], ev["rmse_m"], rtol=1e-9)
