@@ -646,7 +646,7 @@ def calibrate(dataset, params=None, config=None) -> Result:
     Returns:
         Result with `position` (A, 3) and `covariance` (A, 3, 3); fitted hyperparameters in params.
     """
-    from jaxcal.trajectory.poses import AnchorRanges, prepare
+    from jaxcal.trajectory.poses import AnchorRanges
 
     p = with_overrides(GPParams(), params)
     if p.target not in ("range", "inv-log"):
@@ -660,15 +660,7 @@ def calibrate(dataset, params=None, config=None) -> Result:
         raise JaxcalError(
             "parameters grid >= 2, 1 <= top_k <= grid^2, 0 < shrink < 1, tol_m > 0 required"
         )
-    groups, info = prepare(
-        dataset,
-        p.order,
-        p.knot_dt_s,
-        p.max_gap_s,
-        p.time_offset_s,
-        p.estimate_offset,
-        p.max_offset_s,
-    )
+    groups, info = p.prepare_poses(dataset)
     pos = np.asarray(groups.position)
     rng_m = np.asarray(groups.range)
     mask = np.asarray(groups.mask)

@@ -59,6 +59,20 @@ class TrajectoryParams(eqx.Module):
     estimate_offset: bool = False
     max_offset_s: float = 1.0
 
+    def prepare_poses(self, dataset):
+        """`poses.prepare` with these settings: (AnchorRanges, info) of a trajectory dataset."""
+        from jaxcal.trajectory.poses import prepare
+
+        return prepare(
+            dataset,
+            self.order,
+            self.knot_dt_s,
+            self.max_gap_s,
+            self.time_offset_s,
+            self.estimate_offset,
+            self.max_offset_s,
+        )
+
 
 class LSParams(TrajectoryParams):
     """Parameters of `ls`: only the shared `TrajectoryParams` settings."""
@@ -139,18 +153,8 @@ def calibrate(dataset, params=None, config=None) -> Result:
     Returns:
         Result with `position` (A, 3) and `covariance` (A, 3, 3); NaN for anchors with too few ranges.
     """
-    from jaxcal.trajectory.poses import prepare
-
     p = with_overrides(LSParams(), params)
-    groups, info = prepare(
-        dataset,
-        p.order,
-        p.knot_dt_s,
-        p.max_gap_s,
-        p.time_offset_s,
-        p.estimate_offset,
-        p.max_offset_s,
-    )
+    groups, info = p.prepare_poses(dataset)
     est, cov = jax.jit(multilaterate_all, static_argnums=(3, 4, 5))(
         groups.position, groups.range, groups.mask, p.planar_tol_m, p.side, p.planar_ratio
     )

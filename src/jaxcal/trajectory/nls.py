@@ -133,20 +133,10 @@ def calibrate(dataset, params=None, config=None) -> Result:
     Returns:
         Result with `position` (A, 3) and `covariance` (A, 3, 3); the fitted biases are in params.
     """
-    from jaxcal.trajectory.poses import prepare
-
     p = with_overrides(NLSParams(), params)
     if p.loss not in ("cauchy", "huber", "l2"):
         raise JaxcalError(f"parameter loss: expected cauchy, huber or l2, got {p.loss!r}")
-    groups, info = prepare(
-        dataset,
-        p.order,
-        p.knot_dt_s,
-        p.max_gap_s,
-        p.time_offset_s,
-        p.estimate_offset,
-        p.max_offset_s,
-    )
+    groups, info = p.prepare_poses(dataset)
 
     est, cov, bias = _solve_all(groups.position, groups.range, groups.mask, p)
     info = dict(info, bias_m=[float(b) for b in bias])
