@@ -54,3 +54,30 @@ def assert_one_line_error(proc, fragment: str | None = None, code: int = 2):
     assert "Traceback" not in proc.stderr
     if fragment is not None:
         assert fragment.lower() in lines[0].lower(), lines[0]
+
+
+def random_layout(rng: np.random.Generator, n: int, span: float, min_sep: float = 1.0):
+    """Node positions uniform in a span x span square, redrawn until every pair is more than
+    `min_sep` apart; returns (positions, (n, n) true distances)."""
+    while True:
+        pos = rng.uniform(0, span, (n, 2))
+        d = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
+        if d[np.triu_indices(n, 1)].min() > min_sep:
+            return pos, d
+
+
+def mesh_of(r: np.ndarray, truth: np.ndarray | None, **kw):
+    """A test `MeshDataset` of (K, N, N) ranges (diagonal set to NaN) at 10 Hz."""
+    from jaxcal.data import MeshDataset
+
+    r = np.array(r, dtype=np.float64)
+    k, n = r.shape[:2]
+    r[:, np.arange(n), np.arange(n)] = np.nan
+    return MeshDataset(
+        name="t",
+        node_ids=[f"n{i}" for i in range(n)],
+        time=np.arange(k) * 0.1,
+        range=r.astype(np.float32),
+        truth=truth,
+        **kw,
+    )

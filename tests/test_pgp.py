@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import assert_one_line_error, run_cli
+from conftest import assert_one_line_error, mesh_of, random_layout, run_cli
 from jaxcal.data import MeshDataset
 from jaxcal.errors import JaxcalError
 from jaxcal.io import hdf5
@@ -23,26 +23,13 @@ def make_mesh(
 ) -> MeshDataset:
     """Random 2-D nodes, ranges = true distance + Gaussian noise, some missing."""
     rng = np.random.default_rng(seed)
-    while True:
-        truth = rng.uniform(0, span, (n, 2))
-        d = np.linalg.norm(truth[:, None] - truth[None], axis=-1)
-        if d[np.triu_indices(n, 1)].min() > 1.0:
-            break
+    truth, d = random_layout(rng, n, span)
     r = np.repeat(d[None], k, 0) + rng.normal(0, noise, (k, n, n)) * (noise > 0)
     r = np.abs(r)
     r[rng.random((k, n, n)) < missing] = np.nan
     for i, j in never:
         r[:, i, j] = r[:, j, i] = np.nan
-    for e in range(k):
-        np.fill_diagonal(r[e], np.nan)
-    return MeshDataset(
-        name="t",
-        node_ids=[f"n{i}" for i in range(n)],
-        time=np.arange(k) * 0.1,
-        range=r.astype(np.float32),
-        truth=truth,
-        configs=configs or {},
-    )
+    return mesh_of(r, truth, configs=configs or {})
 
 
 # one grid for every small test (the margin always reaches the cap: R = 7 m, 15 x 15 cells), so

@@ -6,6 +6,7 @@ import jax
 import numpy as np
 import pytest
 
+from conftest import mesh_of, random_layout
 from jaxcal.data import MeshDataset
 from jaxcal.errors import JaxcalError
 from jaxcal.mesh import fast as F
@@ -33,11 +34,7 @@ FINE = dict(
 def mesh(k=10, n=6, seed=0, noise=0.05, jump=None) -> MeshDataset:
     """Random nodes in a 5 m square; `jump=(epoch, node, dx)` moves one node from that epoch on."""
     rng = np.random.default_rng(seed)
-    while True:
-        pos = rng.uniform(0, 5.0, (n, 2))
-        d = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
-        if d[np.triu_indices(n, 1)].min() > 1.2:
-            break
+    pos, d = random_layout(rng, n, 5.0, min_sep=1.2)
     r = np.repeat(d[None], k, 0)
     if jump is not None:
         e, i, dx = jump
@@ -46,15 +43,7 @@ def mesh(k=10, n=6, seed=0, noise=0.05, jump=None) -> MeshDataset:
         r[e:] = np.linalg.norm(moved[:, None] - moved[None], axis=-1)
     r = np.abs(r + rng.normal(0, noise, r.shape))
     r = (r + np.swapaxes(r, 1, 2)) / 2
-    for e in range(k):
-        np.fill_diagonal(r[e], np.nan)
-    return MeshDataset(
-        name="t",
-        node_ids=[f"n{i}" for i in range(n)],
-        time=np.arange(k) * 0.1,
-        range=r.astype(np.float32),
-        truth=pos,
-    )
+    return mesh_of(r, pos)
 
 
 def run(ds, likelihood, **kw):

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import assert_one_line_error, run_cli
+from conftest import assert_one_line_error, mesh_of, random_layout, run_cli
 from jaxcal import tune as T
 from jaxcal.data import MeshDataset
 from jaxcal.io import hdf5
@@ -19,21 +19,9 @@ from jaxcal.mesh.pgp import PGPParams
 
 def make_mesh(n=5, k=5, noise=0.15, seed=0, span=5.0, truth=True) -> MeshDataset:
     rng = np.random.default_rng(seed)
-    while True:
-        pos = rng.uniform(0, span, (n, 2))
-        d = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
-        if d[np.triu_indices(n, 1)].min() > 1.0:
-            break
+    pos, d = random_layout(rng, n, span)
     r = np.abs(d[None] + rng.normal(0, noise, (k, n, n)))
-    for e in range(k):
-        np.fill_diagonal(r[e], np.nan)
-    return MeshDataset(
-        name="t",
-        node_ids=[f"n{i}" for i in range(n)],
-        time=np.arange(k) * 0.1,
-        range=r.astype(np.float32),
-        truth=pos if truth else None,
-    )
+    return mesh_of(r, pos if truth else None)
 
 
 # 15 x 15 cells of 1 m; broad posteriors (sigma_r ~ cell) so that tau and sigma_v matter
