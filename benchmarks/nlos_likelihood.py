@@ -82,4 +82,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    try:
+        raise SystemExit(main())
+    except ValueError as e:  # bad --weights / --means / --seeds: one line, no traceback
+        raise SystemExit(f"nlos_likelihood: error: {e}") from None

@@ -43,6 +43,7 @@ import dataclasses  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from jaxcal.errors import JaxcalError  # noqa: E402
 from jaxcal.mesh import pgp  # noqa: E402
 from jaxcal.mesh.frame import to_frame  # noqa: E402
 from jaxcal.params import parse_set, with_overrides  # noqa: E402
@@ -165,6 +166,7 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="PGP parameter override for every row (e.g. window_small_m=3.5)")
     a = ap.parse_args(argv)
+    with_overrides(pgp.PGPParams(), parse_set(a.set))  # bad overrides fail before any row runs
     if a.quick:
         rows = [(12, 0.25)]
         a.repeats = min(a.repeats, 2)
@@ -183,4 +185,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except (JaxcalError, ValueError) as e:  # bad --set values: one line, no traceback
+        sys.exit(f"pgp_speed: error: {e}")
