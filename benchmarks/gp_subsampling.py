@@ -27,6 +27,7 @@ import jax
 import numpy as np
 
 from jaxcal.data import TrajectoryDataset
+from jaxcal.errors import JaxcalError
 from jaxcal.io import hdf5
 from jaxcal.methods import calibrate
 from jaxcal.trajectory.gp import stratified_subsample
@@ -117,4 +118,7 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except (JaxcalError, ValueError) as e:  # a missing or bad file, a bad --set: one line
+        raise SystemExit(f"gp_subsampling: error: {e}") from None
