@@ -17,7 +17,7 @@ from jaxcal.mesh import mds
 from jaxcal.mesh.frame import align_rigid, apply_rigid, to_frame
 
 # Small settings shared by the tests, so that most of them reuse one compilation.
-FAST = dict(n_starts=2, smacof_iters=100)
+FAST = dict(n_starts=2, smacof_iters=100, estimate="map")
 N, K = 7, 3
 
 
@@ -342,3 +342,95 @@ def test_cli_calibrate_batch(tmp_path, rng):
         assert json.loads(h.attrs["params"])["sigma_r"] == 0.2
     bad = run_cli("calibrate", f, "--method", "batch", "-o", tmp_path / "x.h5", "--set", "loss=tukey")
     assert_one_line_error(bad, "loss")
+
+
+# ---------------------------------------------------------------------------------------------- posterior mean
+
+
+def _posterior_reference(pos_map, c_map, z, i, j, nu, n_draws, rng):
+    """Self-normalised importance sampling of the pair-level posterior (`posterior_mean`'s model,
+    written out in NumPy): frame coordinates (a0 = 0, a1 on +x, a2 free) and the offset c ~ N(0, 10^2);
+    proposal: multivariate t (4 dof) at the fit with 1.5^2 times the Laplace covariance."""
+    n, dim = pos_map.shape
+    mask = np.ones((n, dim), dtype=bool)
+    mask[0] = False
+    mask[1, 1:] = False
+    theta0 = np.r_[pos_map[mask], c_map]
+    p = theta0.size
+
+    def errors(theta):  # (S, P) -> (S, M)
+        x = np.zeros((theta.shape[0], n, dim))
+        x[:, mask] = theta[:, :-1]
+        return z - np.linalg.norm(x[:, i] - x[:, j], axis=-1) - theta[:, -1:]
+
+    e0 = errors(theta0[None])[0]
+    s = 1.4826 * np.median(np.abs(e0)) * np.sqrt(len(z) / (len(z) - p))
+
+    def log_target(theta):
+        return -0.5 * (nu + 1) * np.sum(np.log1p((errors(theta) / s) ** 2 / nu), axis=1) - theta[:, -1] ** 2 / 200
+
+    h = 1e-6
+    jac = np.stack([(errors((theta0 + h * e)[None])[0] - e0) / h for e in np.eye(p)], axis=1)
+    cov = np.linalg.inv(jac.T @ jac / s**2 + np.diag(np.r_[np.zeros(p - 1), 0.01])) * 1.5**2
+    chol = np.linalg.cholesky(cov)
+    df = 4.0
+    g = rng.standard_normal((n_draws, p))
+    w_chi = rng.chisquare(df, n_draws) / df
+    draws = theta0 + (g @ chol.T) / np.sqrt(w_chi)[:, None]
+    maha = np.sum(np.linalg.solve(chol, (draws - theta0).T) ** 2, axis=0)
+    log_q = -0.5 * (df + p) * np.log1p(maha / df)
+    log_w = log_target(draws) - log_q
+    w = np.exp(log_w - log_w.max())
+    w /= w.sum()
+    mean = w @ draws
+    cov_post = (draws - mean).T @ ((draws - mean) * w[:, None])
+    return mean, cov_post, 1.0 / np.sum(w * w), mask
+
+
+def test_posterior_mean_equals_importance_sampling_reference(rng):
+    NU = 4.0  # noqa: N806  (Cauchy tails give this small problem a faint mirror mode that no chain visits)
+    # Node 4 close to the line a0-a1 and ranging only a0, a1, a2: a weakly determined node.
+    truth = np.array([[0.0, 0.0], [6.0, 0.0], [2.5, 4.0], [7.0, 5.0], [3.2, 0.2], [-1.0, 3.0], [4.0, -3.0]])
+    n = len(truth)
+    d = np.linalg.norm(truth[:, None] - truth[None], axis=-1)
+    r = d + rng.normal(0.0, 0.1, d.shape) - 0.1
+    r = 0.5 * (r + r.T)[None]
+    r[0, np.arange(n), np.arange(n)] = np.nan
+    for a, b in ((4, 5), (4, 6), (4, 3)):  # node 4 ranges only a0, a1, a2
+        r[0, a, b] = r[0, b, a] = np.nan
+    p_map = B.BatchParams(summary="median", **FAST)
+    sol_map = B.solve(r, (0, 1, 2), p_map)
+    sol = B.solve(r, (0, 1, 2), B.BatchParams(summary="median", mcmc_steps=6000, student_nu=NU,
+                                            **{**FAST, "estimate": "mean"}))
+    assert np.isfinite(sol.mcmc_accept) and sol.mcmc_rhat < 1.05
+    iu, ju = np.triu_indices(n, 1)
+    ok = np.isfinite(r[0, iu, ju])
+    ref_mean, ref_cov, ess, mask = _posterior_reference(sol_map.position, sol_map.offset_m, r[0, iu, ju][ok],
+                                                        iu[ok], ju[ok], NU, 400_000, rng)
+    assert ess > 2_000  # the reference itself is trustworthy (Monte Carlo error < 0.03 sd)
+    sd = np.sqrt(np.diag(ref_cov))
+    got = np.r_[sol.position[mask], sol.offset_m]
+    np.testing.assert_array_less(np.abs(got - ref_mean), 0.12 * sd + 1e-9)
+    got_sd = np.sqrt(np.r_[[sol.covariance[k][a, a] for k, a in zip(*np.nonzero(mask))]])
+    np.testing.assert_allclose(got_sd, sd[:-1], rtol=0.15)
+
+
+def test_split_rhat_reference():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(2, 4, 500, 3))  # (half, chain, draw, coordinate)
+    x[1, 0] += 3.0  # one half-chain stuck elsewhere in coordinate set
+    s1, s2 = jnp.asarray(x.sum(axis=2)), jnp.asarray((x * x).sum(axis=2))
+    seq = x.reshape(8, 500, 3)
+    n = 500
+    w = seq.var(axis=1, ddof=1).mean(axis=0)
+    b = n * seq.mean(axis=1).var(axis=0, ddof=1)
+    ref = np.sqrt(((n - 1) / n * w + b / n) / w)
+    np.testing.assert_allclose(np.asarray(B._split_rhat(s1, s2, n)), ref, rtol=1e-10)
+    assert (ref > 1.2).all()
+
+
+def test_estimate_mean_rejects_bad_settings():
+    for kw, word in ((dict(estimate="median"), "estimate"), (dict(student_nu=0.0), "student_nu"),
+                     (dict(mcmc_steps=4), "mcmc_steps"), (dict(mcmc_chains=0), "mcmc_chains")):
+        with pytest.raises(JaxcalError, match=word):
+            B.BatchParams(**kw)

@@ -49,6 +49,7 @@ SUMMARIES = ("median", "all")
 INITS = ("multi", "cmds", "smacof")
 SOLVERS = ("lm", "gn")
 PAIR_WEIGHTS = ("none", "spread")
+ESTIMATES = ("map", "mean")
 
 
 class BatchParams(eqx.Module):
@@ -87,6 +88,12 @@ class BatchParams(eqx.Module):
         irls_iters: reweighting rounds of the all-epochs refinement (`summary=all`).
         z_up: 3-D only: of the two mirror images (z -> -z), report the one where the nodes other than
             a0, a1, a2 lie mostly above the a0-a1-a2 plane (true) or below it (false).
+        estimate: `mean` (default: posterior mean and sample covariance of the pair-level model, see
+            `posterior_mean`; the minimum-mean-square-error estimate, which differs from the fit where
+            the geometry is weak) or `map` (the robust fit itself and its Laplace covariance).
+        student_nu: degrees of freedom of the Student-t pair likelihood of `estimate=mean` (1 = Cauchy).
+        mcmc_chains, mcmc_steps: Hamiltonian Monte Carlo chains and transitions per chain of
+            `estimate=mean` (the first quarter is burn-in).
     """
 
     dim: int = 2
@@ -113,15 +120,20 @@ class BatchParams(eqx.Module):
     gnc_stages: int = 6
     relocate_rounds: int = 2
     relocate_grid: int = 48
+    estimate: str = "mean"
+    student_nu: float = 1.0
+    mcmc_chains: int = 16
+    mcmc_steps: int = 4000
 
     def __check_init__(self):
         for name, allowed in (("loss", LOSSES), ("bias", BIASES), ("summary", SUMMARIES),
-                              ("init", INITS), ("solver", SOLVERS), ("pair_weight", PAIR_WEIGHTS)):
+                              ("init", INITS), ("solver", SOLVERS), ("pair_weight", PAIR_WEIGHTS),
+                              ("estimate", ESTIMATES)):
             if getattr(self, name) not in allowed:
                 raise JaxcalError(f"parameter {name}: expected one of {', '.join(allowed)}, got {getattr(self, name)!r}")
         if self.dim not in (2, 3):
             raise JaxcalError(f"parameter dim: expected 2 or 3, got {self.dim}")
-        for name in ("sigma_r", "node_bias_sigma_m", "nlos_mean_m", "outlier_span_m", "tol"):
+        for name in ("sigma_r", "node_bias_sigma_m", "nlos_mean_m", "outlier_span_m", "tol", "student_nu"):
             if not getattr(self, name) > 0:
                 raise JaxcalError(f"parameter {name}: must be > 0, got {getattr(self, name)}")
         for name in ("nlos_weight", "outlier_weight"):
@@ -130,9 +142,11 @@ class BatchParams(eqx.Module):
         if self.nlos_weight + self.outlier_weight >= 1:
             raise JaxcalError("parameters nlos_weight + outlier_weight must be < 1")
         if min(self.n_starts, self.smacof_iters, self.relocate_rounds) < 0 or min(
-                self.max_steps, self.irls_iters, self.gnc_stages, self.relocate_grid, self.n_boot) < 1:
+                self.max_steps, self.irls_iters, self.gnc_stages, self.relocate_grid, self.n_boot,
+                self.mcmc_chains) < 1 or self.mcmc_steps < 8:
             raise JaxcalError("parameters n_starts, smacof_iters, relocate_rounds must be >= 0; "
-                              "max_steps, irls_iters, gnc_stages, relocate_grid, n_boot >= 1")
+                              "max_steps, irls_iters, gnc_stages, relocate_grid, n_boot, mcmc_chains >= 1; "
+                              "mcmc_steps >= 8")
 
 
 class Observations(eqx.Module):
@@ -165,6 +179,9 @@ class BatchSolution(eqx.Module):
         bias: the range offset model used (`bias=auto` resolved to `network` or `none`).
         boot_rmse_m: (2,) bootstrap position RMSE [m] of the network-offset and the no-offset fit
             (`bias=auto`; NaN otherwise).
+        mcmc_accept, mcmc_rhat: `estimate=mean` only (NaN otherwise): the sampler's acceptance rate and
+            the largest split R-hat over the free coordinates (values above about 1.05 mean the chains
+            have not mixed: raise `mcmc_steps`).
     """
 
     position: np.ndarray
@@ -176,6 +193,8 @@ class BatchSolution(eqx.Module):
     residual_sigma_m: float
     bias: str = "network"
     boot_rmse_m: np.ndarray = eqx.field(default_factory=lambda: np.full(2, np.nan))
+    mcmc_accept: float = float("nan")
+    mcmc_rhat: float = float("nan")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -536,6 +555,18 @@ def _irls_all(y0: _State, obs: Observations, pair_i: Array, pair_j: Array, pair_
 
 
 @eqx.filter_jit
+def _pair_locations(state: _State, obs: Observations, pair_i: Array, pair_j: Array, pair_of_obs: Array,
+                    nb: _Numbers) -> Observations:
+    """One observation per pair: the IRLS-weighted mean of its ranges at `state` (the pair's robust
+    location that the all-epochs fit uses), weight 1 (0 for padding)."""
+    n_pairs = pair_i.shape[0]
+    w = _irls_weight(_errors(state, obs, nb), nb) * obs.w
+    wsum = jax.ops.segment_sum(w, pair_of_obs, n_pairs)
+    zbar = jax.ops.segment_sum(w * obs.z, pair_of_obs, n_pairs) / jnp.maximum(wsum, 1e-300)
+    return Observations(pair_i, pair_j, zbar, (wsum > 0).astype(zbar.dtype))
+
+
+@eqx.filter_jit
 def _covariance(free: Array, template: Array, mask: Array, c: Array, b: Array, obs: Observations,
                 nb: _Numbers):
     """Covariance of the free position coordinates (plus offsets) in the anchor frame.
@@ -566,6 +597,154 @@ def _covariance(free: Array, template: Array, mask: Array, c: Array, b: Array, o
     cov = jnp.linalg.inv(h)
     f = free.shape[0]
     return cov[:f, :f], s2
+
+
+_LEAPFROG = 16  # leapfrog steps per HMC transition of `posterior_mean`
+
+
+def _split_rhat(s1: Array, s2: Array, n: int) -> Array:
+    """Split-chain potential scale reduction R-hat per coordinate (Gelman et al.).
+
+    Args:
+        s1, s2: (2, C, P) sums and sums of squares of the two halves of C chains, n draws each.
+    """
+    mean = (s1 / n).reshape(-1, s1.shape[-1])
+    var = ((s2 - s1 * s1 / n) / max(n - 1, 1)).reshape(-1, s1.shape[-1])
+    w = jnp.mean(var, axis=0)
+    b = n * jnp.var(mean, axis=0, ddof=1)
+    var_plus = (n - 1) / n * w + b / n
+    return jnp.sqrt(var_plus / jnp.maximum(w, 1e-300))
+
+
+@eqx.filter_jit
+def posterior_mean(free: Array, template: Array, mask: Array, c: Array, b: Array, obs: Observations,
+                   nb: _Numbers, key: Array, nu: Array, n_chains: int, n_steps: int):
+    """Posterior mean and covariance of the free frame coordinates (and offsets) (`estimate=mean`).
+
+    The least-squares / robust fit is the posterior *mode*. Where the geometry is weak (a direction the
+    ranges pin down only to second order, e.g. nodes nearly in one plane or on one line), the posterior is
+    curved and skewed, and its mode sits away from its mean; the mean is the estimate with the least
+    expected squared error. Model: one observation per pair (`obs`, the per-pair median summary), each
+    error Student-t with `nu` degrees of freedom and a common scale s = 1.4826 MAD(e) sqrt(M / (M - P)) of
+    the fit's pair errors (per-pair systematic errors dominate on real meshes: repeated ranges of a pair
+    are not independent, so the pair, not the single range, is the unit); flat prior on positions, the
+    offsets' priors of `_prior_scales`. Sampled by Hamiltonian Monte Carlo (`_LEAPFROG` leapfrog steps per
+    transition, `n_chains` vmapped chains started at the fit); the first quarter of `n_steps` is burn-in:
+    its first half runs whitened by the Laplace covariance and estimates the posterior covariance, which
+    whitens the rest; the step size adapts during the burn-in to a mean acceptance probability of 0.8.
+
+    Args:
+        free: (F,) free coordinates of the fit; template: (m, D) frame coordinates (fixed ones 0);
+        mask: (m, D) bool, which entries of `template` are free; c, b: the fit's offsets;
+        obs: pair observations (padding has weight 0); nb: numbers of the fit; key: PRNG key;
+        nu: Student-t degrees of freedom; n_chains, n_steps: static sampler sizes.
+
+    Returns:
+        (mean (F + 1 + n,), covariance (F + 1 + n, F + 1 + n), acceptance rate, max split R-hat over the
+        free coordinates).
+    """
+    f, n_b = free.shape[0], b.shape[0]
+    idx = jnp.nonzero(mask.ravel(), size=f)[0]
+    theta0 = jnp.concatenate([free, jnp.reshape(c, (1,)), b])
+    p_dim = theta0.shape[0]
+
+    def errs(theta):
+        x = template.ravel().at[idx].set(theta[:f]).reshape(template.shape)
+        return _errors(_State(x, theta[f], theta[f + 1:]), obs, nb)
+
+    real = obs.w > 0
+    e0 = errs(theta0)
+    m = jnp.sum(real)
+    n_par = f + nb.use_c + nb.use_b * n_b
+    mad = jnp.nanmedian(jnp.where(real, jnp.abs(e0), jnp.nan))
+    scale = jnp.maximum(1.4826 * mad * jnp.sqrt(m / jnp.maximum(m - n_par, 1.0)), 1e-6)
+    sc, sb = _prior_scales(nb)
+    prior_prec = jnp.concatenate([jnp.zeros(f), jnp.stack([1.0 / sc**2]), jnp.full(n_b, 1.0 / sb**2)])
+
+    def logp(theta):
+        e = errs(theta)
+        ll = -0.5 * (nu + 1.0) * jnp.sum(obs.w * jnp.log1p((e / scale) ** 2 / nu))
+        return ll - 0.5 * jnp.sum(prior_prec * theta * theta)
+
+    # Hamiltonian Monte Carlo in whitened coordinates theta = center + root @ u: root @ root.T is the
+    # Laplace covariance first, then (from the second half of the burn-in on) the burn-in's sample
+    # covariance, which follows a curved, weakly determined posterior. The leapfrog step size adapts
+    # during the burn-in towards a mean acceptance probability of 0.8.
+    jac = jax.jacfwd(errs)(theta0)
+    info = (jac.T * obs.w) @ jac / scale**2 + jnp.diag(prior_prec)
+
+    def sqrt_cov(cov):
+        lam, vec = jnp.linalg.eigh(0.5 * (cov + cov.T))
+        return vec * jnp.sqrt(jnp.maximum(lam, 1e-12 * jnp.max(lam)))
+
+    def transition(carry, k, center, root, adapt):
+        u, lp, eps, acc = carry  # u: (C, P) whitened positions, lp: (C,), eps: scalar step size
+        k1, k2, k3 = jax.random.split(k, 3)
+        lp_u = lambda v: logp(center + root @ v)  # noqa: E731
+        grad = jax.vmap(jax.grad(lp_u))
+        h = eps * jax.random.uniform(k3, minval=0.8, maxval=1.2)  # jittered step size
+        mom = jax.random.normal(k1, u.shape)
+
+        def leap(state, _):
+            q, pm = state
+            pm = pm + 0.5 * h * grad(q)
+            q = q + h * pm
+            pm = pm + 0.5 * h * grad(q)
+            return (q, pm), None
+
+        (q, pm), _ = jax.lax.scan(leap, (u, mom), None, length=_LEAPFROG)
+        lq = jax.vmap(lp_u)(q)
+        log_ratio = lq - lp - 0.5 * jnp.sum(pm * pm - mom * mom, axis=-1)
+        log_ratio = jnp.where(jnp.isfinite(log_ratio), log_ratio, -jnp.inf)
+        ok = jnp.log(jax.random.uniform(k2, lp.shape)) < log_ratio
+        p_acc = jnp.exp(jnp.minimum(log_ratio, 0.0))
+        eps = jnp.where(adapt, eps * jnp.exp(jnp.mean(p_acc) - 0.8), eps)
+        u = jnp.where(ok[:, None], q, u)
+        return (u, jnp.where(ok, lq, lp), eps, acc + ok), center + u @ root.T
+
+    def run(carry, k, n, center, root, adapt):
+        def body(state, kk):
+            carry, s1, s2, outer = state
+            carry, th = transition(carry, kk, center, root, adapt)
+            return (carry, s1 + th, s2 + th * th, outer + th.T @ th), None
+
+        zeros = jnp.zeros((n_chains, p_dim))
+        carry = (carry[0], carry[1], carry[2], jnp.zeros(n_chains))
+        (carry, s1, s2, outer), _ = jax.lax.scan(body, (carry, zeros, zeros, jnp.zeros((p_dim, p_dim))),
+                                                 jax.random.split(k, n))
+        return carry, s1, s2, outer
+
+    def moments(s1, outer, n):
+        mean = jnp.sum(s1, axis=0) / n
+        return mean, outer / n - jnp.outer(mean, mean)
+
+    def rewhiten(carry, center, root, new_center, new_root):
+        th = center + carry[0] @ root.T
+        u = jnp.linalg.solve(new_root, (th - new_center).T).T
+        lp = jax.vmap(lambda v: logp(new_center + new_root @ v))(u)
+        return (u, lp, carry[2], carry[3])
+
+    k0, kb1, kb2, ka, kc = jax.random.split(key, 5)
+    root = sqrt_cov(jnp.linalg.inv(info))
+    u0 = 0.1 * jax.random.normal(k0, (n_chains, p_dim))
+    carry = (u0, jax.vmap(lambda v: logp(theta0 + root @ v))(u0), jnp.asarray(0.5 / p_dim**0.25),
+             jnp.zeros(n_chains))
+    burn1 = n_steps // 8
+    burn2 = n_steps // 4 - burn1
+    carry, s1, _, outer = run(carry, kb1, burn1, theta0, root, True)
+    center, cov_burn = moments(s1, outer, burn1 * n_chains)
+    new_root = sqrt_cov(cov_burn + jnp.diag(1e-12 + 1e-9 * jnp.diag(cov_burn)))
+    carry = rewhiten(carry, theta0, root, center, new_root)
+    root = new_root
+    carry, _, _, _ = run(carry, kb2, burn2, center, root, True)
+    half = (n_steps - burn1 - burn2) // 2
+    carry, s1a, s2a, oa = run(carry, ka, half, center, root, False)
+    accept = jnp.sum(carry[3])
+    carry, s1b, s2b, ob = run(carry, kc, half, center, root, False)
+    accept = (accept + jnp.sum(carry[3])) / (2 * half * n_chains)
+    mean, cov = moments(s1a + s1b, oa + ob, 2 * half * n_chains)
+    rhat = _split_rhat(jnp.stack([s1a, s1b])[..., :f], jnp.stack([s2a, s2b])[..., :f], half)
+    return mean, 0.5 * (cov + cov.T), accept, jnp.max(rhat)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -710,8 +889,12 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         key_pair = np.minimum(oi, oj) * m + np.maximum(oi, oj)  # padding maps to pair (0, 0), weight 0
         uniq, pair_of_obs = np.unique(key_pair, return_inverse=True)
         size = _bucket(uniq.size)
-        state = _irls_all(state, obs, jnp.asarray(_pad(uniq // m, size)), jnp.asarray(_pad(uniq % m, size)),
-                          jnp.asarray(pair_of_obs), nb, p.solver, p.tol, p.max_steps, p.irls_iters)
+        pair_i, pair_j = jnp.asarray(_pad(uniq // m, size)), jnp.asarray(_pad(uniq % m, size))
+        state = _irls_all(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb, p.solver, p.tol,
+                          p.max_steps, p.irls_iters)
+        obs_pairs = _pair_locations(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb)
+    else:
+        obs_pairs = obs_med
 
     x_sub = np.asarray(state.x)
     x_frame_sub = to_frame(x_sub, int(remap[a0]), int(remap[a1]), int(remap[a2]))
@@ -734,6 +917,16 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     cov_free, s2 = _covariance(jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c,
                                state.b, obs, nb)
     cov_free = np.asarray(cov_free)
+    offset, node_b, accept, rhat = float(state.c), np.asarray(state.b), float("nan"), float("nan")
+    if p.estimate == "mean":
+        mean, cov_s, acc, rh = posterior_mean(
+            jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c, state.b, obs_pairs, nb,
+            jax.random.fold_in(key, 11), jnp.asarray(float(p.student_nu)), p.mcmc_chains, p.mcmc_steps)
+        f = free.size
+        mean, cov_s = np.asarray(mean), np.asarray(cov_s)
+        x_frame_sub[mask] = mean[:f]
+        cov_free, offset, node_b = cov_s[:f, :f], float(mean[f]), mean[f + 1:]
+        accept, rhat = float(acc), float(rh)
     full_idx = np.flatnonzero(mask.ravel())
     cov_all = np.zeros((m * p.dim, m * p.dim))
     cov_all[np.ix_(full_idx, full_idx)] = cov_free
@@ -747,11 +940,12 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     covariance = np.full((n, p.dim, p.dim), np.nan)
     covariance[sub] = cov_nodes
     node_off = np.full(n, np.nan)
-    node_off[sub] = np.asarray(state.b) if chosen == "node" else 0.0
+    node_off[sub] = node_b if chosen == "node" else 0.0
     return BatchSolution(
         position=position, covariance=covariance,
-        offset_m=float(state.c) if chosen != "none" else 0.0, node_offset_m=node_off,
+        offset_m=offset if chosen != "none" else 0.0, node_offset_m=node_off,
         cost=cost, start_costs=costs, residual_sigma_m=float(np.sqrt(s2)), bias=chosen, boot_rmse_m=boot,
+        mcmc_accept=accept, mcmc_rhat=rhat,
     )
 
 
