@@ -2,6 +2,7 @@
 
 import json
 
+import equinox as eqx
 import h5py
 import jax.numpy as jnp
 import numpy as np
@@ -434,3 +435,13 @@ def test_estimate_mean_rejects_bad_settings():
                      (dict(mcmc_steps=4), "mcmc_steps"), (dict(mcmc_chains=0), "mcmc_chains")):
         with pytest.raises(JaxcalError, match=word):
             B.BatchParams(**kw)
+
+
+def test_unmixed_chains_are_one_warning_line(caplog):
+    sol = B.BatchSolution(position=np.zeros((3, 2)), covariance=np.zeros((3, 2, 2)), offset_m=0.0,
+                          node_offset_m=np.zeros(3), cost=0.0, start_costs=np.zeros(1), residual_sigma_m=0.1,
+                          mcmc_accept=0.8, mcmc_rhat=1.3)
+    with caplog.at_level("WARNING", logger="jaxcal"):
+        assert B.warn_if_unmixed(sol, B.BatchParams())
+        assert not B.warn_if_unmixed(eqx.tree_at(lambda s: s.mcmc_rhat, sol, 1.01), B.BatchParams())
+    assert len(caplog.records) == 1 and "R-hat 1.30" in caplog.text and "\n" not in caplog.records[0].getMessage()

@@ -28,6 +28,8 @@ frame fixes.
 
 from __future__ import annotations
 
+import logging
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -50,6 +52,7 @@ INITS = ("multi", "cmds", "smacof")
 SOLVERS = ("lm", "gn")
 PAIR_WEIGHTS = ("none", "spread")
 ESTIMATES = ("map", "mean")
+RHAT_WARN = 1.05  # split R-hat above which `calibrate` warns that the posterior chains have not mixed
 
 
 class BatchParams(eqx.Module):
@@ -964,6 +967,16 @@ def _extra_starts(starts: np.ndarray, sub: np.ndarray, base: np.ndarray, dim: in
     return np.concatenate([ex, mirror])
 
 
+def warn_if_unmixed(sol: BatchSolution, p: BatchParams) -> bool:
+    """Log one warning line (logger `jaxcal`) when `estimate=mean`'s chains have not mixed; True if so."""
+    if not sol.mcmc_rhat > RHAT_WARN:
+        return False
+    logging.getLogger("jaxcal").warning(
+        "batch: the posterior chains have not mixed (split R-hat %.2f > %.2f): mean and covariance are "
+        "uncertain; raise mcmc_steps (now %d) or use estimate=map", sol.mcmc_rhat, RHAT_WARN, p.mcmc_steps)
+    return True
+
+
 def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> Result:
     """`--method batch`: robust batch calibration of a static mesh (see the module docstring).
 
@@ -980,6 +993,7 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
     p = with_overrides(BatchParams(), params)
     anchors = dataset.config(config)
     sol = solve(dataset.range, anchors, p, dataset.node_ids)
+    warn_if_unmixed(sol, p)
     p = eqx.tree_at(lambda q: q.bias, p, sol.bias)  # record the offset model used
     return Result(
         ids=dataset.node_ids, position=sol.position, method="batch", dataset=dataset.name,

@@ -73,6 +73,7 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
     res_pgp, _ = pgp.run_pgp(dataset, p_over, config)
     anchors = dataset.config(config)
     sol = batch.solve(dataset.range, anchors, b, dataset.node_ids, extra_starts=res_pgp.position[None])
+    batch.warn_if_unmixed(sol, b)
     b = eqx.tree_at(lambda q: q.bias, b, sol.bias)  # record the offset model used (bias=auto resolved)
     position = sol.position
     covariance = sol.covariance
