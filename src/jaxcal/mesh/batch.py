@@ -20,6 +20,12 @@ SMACOF from it, and SMACOF from several random starts are all refined (vmapped) 
 lowest robust cost wins. A global mirror image has the same cost (it is the gauge, fixed at the end by
 `to_frame`); partial flips of weakly connected nodes are what the random starts are for.
 
+Reported estimate (`estimate`): by default the posterior *mean* of the positions (`posterior_mean`), not
+the fit itself (the posterior mode, `estimate=map`). In a weak geometry the two differ and the mean is the
+one with the least expected squared error; its covariance comes from the posterior samples of a model
+where the pair, not the single range, is the unit of information (repeated ranges of one pair share its
+systematic error), so it is not the 13-80x overconfident Laplace covariance of the all-ranges fit.
+
 Output frame: a0 at the origin, a1 on +x, a2 with y > 0 (CONTRACT 1.1). The covariance
 `sigma^2 (J^T W J)^-1` is computed in gauge-fixed coordinates of that frame (W = IRLS weights
 psi(e)/e, sigma^2 the weighted residual variance), so it is exactly zero for the coordinates the
