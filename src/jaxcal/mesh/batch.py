@@ -48,6 +48,7 @@ from jaxcal.errors import JaxcalError
 from jaxcal.mesh import mds
 from jaxcal.mesh.frame import to_frame
 from jaxcal.params import as_dict, with_overrides
+from jaxcal.precision import in_float64
 
 __all__ = ["BatchParams", "Observations", "BatchSolution", "observations", "solve", "calibrate", "LOSSES"]
 
@@ -791,6 +792,7 @@ def _active_nodes(i: np.ndarray, j: np.ndarray, n: int, a0: int) -> np.ndarray:
     return seen
 
 
+@in_float64
 def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParams | None = None,
           node_ids: tuple[str, ...] | None = None,
           extra_starts: np.ndarray | None = None) -> BatchSolution:
@@ -974,8 +976,9 @@ def _extra_starts(starts: np.ndarray, sub: np.ndarray, base: np.ndarray, dim: in
 
 
 def warn_if_unmixed(sol: BatchSolution, p: BatchParams) -> bool:
-    """Log one warning line (logger `jaxcal`) when `estimate=mean`'s chains have not mixed; True if so."""
-    if not sol.mcmc_rhat > RHAT_WARN:
+    """Log one warning line (logger `jaxcal`) when `estimate=mean`'s chains have not mixed (split R-hat
+    above `RHAT_WARN` or undefined); True if so."""
+    if p.estimate != "mean" or sol.mcmc_rhat <= RHAT_WARN:  # NaN R-hat (no draw moved) warns too
         return False
     logging.getLogger("jaxcal").warning(
         "batch: the posterior chains have not mixed (split R-hat %.2f > %.2f): mean and covariance are "

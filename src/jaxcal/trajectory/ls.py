@@ -19,21 +19,9 @@ from jaxtyping import Array, Bool, Float
 
 from jaxcal.data import Result
 from jaxcal.params import as_dict, with_overrides
+from jaxcal.precision import in_float64
 
 __all__ = ["LSParams", "multilaterate", "multilaterate_all", "calibrate", "in_float64"]
-
-
-def in_float64(fn):
-    """Run a calibration entry point with 64-bit JAX arrays (scoped, not the global config): the
-    normal equations and GP Cholesky factors need it; results are float64 in the file anyway."""
-    import functools
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        with jax.enable_x64(True):
-            return fn(*args, **kwargs)
-
-    return wrapper
 
 
 class TrajectoryParams(eqx.Module):
