@@ -342,6 +342,10 @@ def test_cli_calibrate_batch(tmp_path, rng):
     assert aligned_rmse(res.position, truth) < 0.05
     with h5py.File(out) as h:
         assert json.loads(h.attrs["params"])["sigma_r"] == 0.2
+    text = run_cli("evaluate", out, "--truth", f)
+    assert text.returncode == 0 and "covariance: predicted rms" in text.stdout, text.stderr
+    ev = json.loads(run_cli("evaluate", out, "--truth", f, "--json").stdout)
+    assert set(ev) == {"method", "dataset", "rmse_m", "final_rmse_m", "aligned_rmse_m", "nodes"}  # the contract's
     bad = run_cli("calibrate", f, "--method", "batch", "-o", tmp_path / "x.h5", "--set", "loss=tukey")
     assert_one_line_error(bad, "loss")
 

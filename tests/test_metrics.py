@@ -240,3 +240,37 @@ def test_trajectory_ranging_errors_with_lever_arm_and_rotation():
     err, los = metrics.ranging_errors(ds)
     assert err == pytest.approx([1.5])  # tag at (1, 1, 0), anchor 4 m away
     assert list(los) == [1]
+
+
+def test_covariance_consistency_known_answers():
+    truth = _scene()
+    tf = to_frame(truth, 0, 1, 2)[:, :2]
+    err = np.array([[0.0, 0.0], [0.3, 0.0], [0.1, -0.2], [0.4, 0.3], [0.0, 0.5]])
+    cov = np.zeros((5, 2, 2))
+    cov[1] = np.diag([0.09, 0.0])  # a1: y fixed by the frame
+    cov[2] = np.diag([0.01, 0.04])
+    cov[3] = [[0.25, 0.1], [0.1, 0.25]]
+    cov[4] = np.diag([0.5, 0.25])
+    res = Result(ids=[f"n{i}" for i in range(5)], position=tf + err, method="x", dataset="m",
+                 frame="anchors:0,1,2", covariance=cov)
+    ds = _mesh(np.full((2, 5, 5), np.nan), truth)
+    cc = metrics.covariance_consistency(res, ds)
+    nees = (0.09 / 0.09 + 0.01 / 0.01 + 0.04 / 0.04
+            + err[3] @ np.linalg.inv(cov[3]) @ err[3] + 0.25 / 0.25)
+    assert cc["nodes"] == 4
+    assert cc["nees_per_dof"] == pytest.approx(nees / 7)
+    assert cc["error_rmse_m"] == pytest.approx(np.sqrt(np.mean([0.09, 0.05, 0.25, 0.25])))
+    assert cc["predicted_rmse_m"] == pytest.approx(np.sqrt(np.mean([0.09, 0.05, 0.5, 0.75])))
+    assert metrics.covariance_consistency(_result(tf), ds) is None  # no covariance
+
+
+def test_covariance_consistency_3d_takes_the_nearer_mirror_image():
+    rng = np.random.default_rng(3)
+    truth = _scene() + np.c_[np.zeros((5, 2)), [0.0, 0.0, 0.0, 2.0, -1.5]]
+    tf = to_frame(truth, 0, 1, 2)
+    est = tf * np.array([1.0, 1.0, -1.0]) + rng.normal(0, 0.05, tf.shape)  # the mirror-image solution
+    cov = np.repeat(np.eye(3)[None] * 0.05**2, 5, axis=0)
+    res = Result(ids=[f"n{i}" for i in range(5)], position=est, method="x", dataset="m",
+                 frame="anchors:0,1,2", covariance=cov)
+    cc = metrics.covariance_consistency(res, _mesh(np.full((2, 5, 5), np.nan), truth))
+    assert cc["error_rmse_m"] < 0.2 and cc["nees_per_dof"] < 5

@@ -31,6 +31,7 @@ __all__ = [
     "ecdf",
     "truth_in_result_frame",
     "evaluate_mesh",
+    "covariance_consistency",
     "evaluate_trajectory",
     "evaluate",
 ]
@@ -321,6 +322,51 @@ def evaluate_mesh(result: Result, dataset: MeshDataset) -> dict:
             for i, nid in enumerate(result.ids)
         ],
         "ecdf": {"epoch_error": ecdf(e[:, not_a0]), "node_rmse": ecdf(node_rmse[not_a0])},
+    }
+
+
+def covariance_consistency(result: Result, dataset: MeshDataset) -> dict | None:
+    """How well a mesh result's covariance predicts its actual errors (None without a covariance).
+
+    Errors are taken in the result's frame (truth transformed into it; for 3-D, the truth or its mirror
+    image through the x-y plane, whichever is nearer), over the final positions of every node except a0
+    that has a finite estimate, covariance and truth. Coordinates the frame fixes
+    (variance <= 1e-12 m^2, e.g. a1's y) are left out of the normalised errors.
+
+    Returns:
+        dict: `nodes` (how many were used), `error_rmse_m` (RMS of |error|), `predicted_rmse_m` (sqrt of
+        the mean covariance trace, what that RMS should be), `nees_per_dof` (sum of e^T C^-1 e over the
+        sum of free coordinates: 1 for a covariance that is right, > 1 when it is too small).
+    """
+    if result.covariance is None:
+        return None
+    order = _match_order(result.ids, dataset.node_ids, "node ids")
+    truth = truth_in_result_frame(result, dataset.truth[order])
+    if truth.shape[1] == 3:  # ranges cannot tell a 3-D scene from its mirror image: take the nearer one
+        mirror = truth * np.array([1.0, 1.0, -1.0])
+        if np.nansum((result.position - mirror) ** 2) < np.nansum((result.position - truth) ** 2):
+            truth = mirror
+    anchors = result.frame_anchors()
+    a0 = anchors[0] if anchors is not None else -1
+    sq_err, trace, nees, dof = [], [], 0.0, 0
+    for k in range(len(result.ids)):
+        e, c = result.position[k] - truth[k], result.covariance[k]
+        if k == a0 or not (np.isfinite(e).all() and np.isfinite(c).all()):
+            continue
+        free = np.diag(c) > 1e-12
+        sq_err.append(float(e @ e))
+        trace.append(float(np.trace(c)))
+        if free.any():
+            cf = c[np.ix_(free, free)]
+            nees += float(e[free] @ np.linalg.lstsq(cf, e[free], rcond=None)[0])
+            dof += int(free.sum())
+    if not sq_err:
+        return None
+    return {
+        "nodes": len(sq_err),
+        "error_rmse_m": float(np.sqrt(np.mean(sq_err))),
+        "predicted_rmse_m": float(np.sqrt(np.mean(trace))),
+        "nees_per_dof": nees / dof if dof else float("nan"),
     }
 
 

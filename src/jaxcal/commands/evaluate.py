@@ -29,6 +29,14 @@ def run(args) -> int:
             f"rmse {fmt(report['rmse_m'])} m   final rmse {fmt(report['final_rmse_m'])} m   "
             f"aligned rmse {fmt(report['aligned_rmse_m'])} m"
         )
+        from jaxcal.metrics import covariance_consistency
+
+        cc = covariance_consistency(result, truth)
+        if cc is not None:  # text only: the JSON report is the contract's, key for key
+            print(
+                f"covariance: predicted rms {fmt(cc['predicted_rmse_m'])} m, actual {fmt(cc['error_rmse_m'])} m, "
+                f"NEES per coordinate {cc['nees_per_dof']:.2f} (1 = calibrated, > 1 = overconfident)"
+            )
         print(f"{'node':<12}{'rmse [m]':>10}{'final [m]':>11}{'avail.':>8}")
         for n in report["nodes"]:
             print(
