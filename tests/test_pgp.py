@@ -201,9 +201,19 @@ def test_snapshots_and_uncertainty_out():
     assert info.snapshots.shape == (2,) + info.posterior.shape
     np.testing.assert_allclose(info.snapshots[1], info.posterior, atol=1e-12)
     assert res.params["sigma_r"] == SMALL["sigma_r"] and res.params["cell_m"] == 1.0
-    # covariance is the posterior's: a0 is exact, a1 varies along x only
+    # covariance is the posterior's, read as a histogram density: the cell centres' covariance plus
+    # cell^2 / 12 per free axis; a0 is exact, a1 varies along x only
     assert np.allclose(res.covariance[0], 0) and np.allclose(res.covariance[1][1], 0)
-    assert np.all(np.linalg.eigvalsh(res.covariance[3:]) >= -1e-12)
+    gx, gy = np.meshgrid(info.axis_m, info.axis_m, indexing="ij")
+    q = res.params["cell_m"] ** 2 / 12
+    for i in range(1, ds.n_nodes):
+        p = info.posterior[i] / info.posterior[i].sum()
+        mx, my = np.sum(p * gx), np.sum(p * gy)
+        want = np.array([[np.sum(p * (gx - mx) ** 2), np.sum(p * (gx - mx) * (gy - my))],
+                         [np.sum(p * (gx - mx) * (gy - my)), np.sum(p * (gy - my) ** 2)]])
+        want += np.diag([q, q if i != 1 else 0.0])
+        np.testing.assert_allclose(res.covariance[i], want, atol=1e-9)
+        assert res.covariance[i][0, 0] >= q - 1e-12
 
 
 @pytest.mark.parametrize(
