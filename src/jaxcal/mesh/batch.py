@@ -59,7 +59,7 @@ INITS = ("multi", "cmds", "smacof")
 SOLVERS = ("lm", "gn")
 PAIR_WEIGHTS = ("none", "spread")
 ESTIMATES = ("map", "mean")
-RHAT_WARN = 1.05  # split R-hat above which `calibrate` warns that the posterior chains have not mixed
+RHAT_MAX = 1.1  # split R-hat above which (or undefined) estimate=mean falls back to the fit (Gelman-Rubin)
 
 
 class BatchParams(eqx.Module):
@@ -190,8 +190,10 @@ class BatchSolution(eqx.Module):
         boot_rmse_m: (2,) bootstrap position RMSE [m] of the network-offset and the no-offset fit
             (`bias=auto`; NaN otherwise).
         mcmc_accept, mcmc_rhat: `estimate=mean` only (NaN otherwise): the sampler's acceptance rate and
-            the largest split R-hat over the free coordinates (values above about 1.05 mean the chains
-            have not mixed: raise `mcmc_steps`).
+            the largest split R-hat over the free coordinates.
+        estimate: the estimate reported: `mean`, or `map` when asked for, or when the chains did not mix
+            (R-hat above `RHAT_MAX` or undefined: e.g. a node with a single range, whose posterior under
+            the heavy-tailed likelihood is improper, or fewer pairs than unknowns).
     """
 
     position: np.ndarray
@@ -205,6 +207,7 @@ class BatchSolution(eqx.Module):
     boot_rmse_m: np.ndarray = eqx.field(default_factory=lambda: np.full(2, np.nan))
     mcmc_accept: float = float("nan")
     mcmc_rhat: float = float("nan")
+    estimate: str = "map"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -929,15 +932,18 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
                                state.b, obs, nb)
     cov_free = np.asarray(cov_free)
     offset, node_b, accept, rhat = float(state.c), np.asarray(state.b), float("nan"), float("nan")
+    used = "map"
     if p.estimate == "mean":
         mean, cov_s, acc, rh = posterior_mean(
             jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c, state.b, obs_pairs, nb,
             jax.random.fold_in(key, 11), jnp.asarray(float(p.student_nu)), p.mcmc_chains, p.mcmc_steps)
         f = free.size
         mean, cov_s = np.asarray(mean), np.asarray(cov_s)
-        x_frame_sub[mask] = mean[:f]
-        cov_free, offset, node_b = cov_s[:f, :f], float(mean[f]), mean[f + 1:]
         accept, rhat = float(acc), float(rh)
+        if rhat <= RHAT_MAX and np.isfinite(mean).all() and np.isfinite(cov_s).all():
+            x_frame_sub[mask] = mean[:f]
+            cov_free, offset, node_b = cov_s[:f, :f], float(mean[f]), mean[f + 1:]
+            used = "mean"
     full_idx = np.flatnonzero(mask.ravel())
     cov_all = np.zeros((m * p.dim, m * p.dim))
     cov_all[np.ix_(full_idx, full_idx)] = cov_free
@@ -956,7 +962,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         position=position, covariance=covariance,
         offset_m=offset if chosen != "none" else 0.0, node_offset_m=node_off,
         cost=cost, start_costs=costs, residual_sigma_m=float(np.sqrt(s2)), bias=chosen, boot_rmse_m=boot,
-        mcmc_accept=accept, mcmc_rhat=rhat,
+        mcmc_accept=accept, mcmc_rhat=rhat, estimate=used,
     )
 
 
@@ -976,13 +982,13 @@ def _extra_starts(starts: np.ndarray, sub: np.ndarray, base: np.ndarray, dim: in
 
 
 def warn_if_unmixed(sol: BatchSolution, p: BatchParams) -> bool:
-    """Log one warning line (logger `jaxcal`) when `estimate=mean`'s chains have not mixed (split R-hat
-    above `RHAT_WARN` or undefined); True if so."""
-    if p.estimate != "mean" or sol.mcmc_rhat <= RHAT_WARN:  # NaN R-hat (no draw moved) warns too
+    """Log one warning line (logger `jaxcal`) when `estimate=mean` fell back to the fit; True if so."""
+    if p.estimate != "mean" or sol.estimate == "mean":
         return False
     logging.getLogger("jaxcal").warning(
-        "batch: the posterior chains have not mixed (split R-hat %.2f > %.2f): mean and covariance are "
-        "uncertain; raise mcmc_steps (now %d) or use estimate=map", sol.mcmc_rhat, RHAT_WARN, p.mcmc_steps)
+        "batch: the posterior chains did not mix (split R-hat %.2f, limit %.2f): reporting the fit "
+        "(estimate=map) and its covariance instead; raise mcmc_steps (now %d) or add ranges",
+        sol.mcmc_rhat, RHAT_MAX, p.mcmc_steps)
     return True
 
 
@@ -1003,7 +1009,7 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
     anchors = dataset.config(config)
     sol = solve(dataset.range, anchors, p, dataset.node_ids)
     warn_if_unmixed(sol, p)
-    p = eqx.tree_at(lambda q: q.bias, p, sol.bias)  # record the offset model used
+    p = eqx.tree_at(lambda q: (q.bias, q.estimate), p, (sol.bias, sol.estimate))  # record what was used
     return Result(
         ids=dataset.node_ids, position=sol.position, method="batch", dataset=dataset.name,
         frame="anchors:" + ",".join(str(a) for a in anchors), params=as_dict(p),

@@ -75,7 +75,8 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
     anchors = dataset.config(config)
     sol = batch.solve(dataset.range, anchors, b, dataset.node_ids, extra_starts=res_pgp.position[None])
     batch.warn_if_unmixed(sol, b)
-    b = eqx.tree_at(lambda q: q.bias, b, sol.bias)  # record the offset model used (bias=auto resolved)
+    # record what was used: bias=auto resolved, estimate=mean or its fallback to the fit
+    b = eqx.tree_at(lambda q: (q.bias, q.estimate), b, (sol.bias, sol.estimate))
     position = sol.position
     covariance = sol.covariance
     # Nodes the batch fit cannot place (not connected to a0) keep the PGP estimate and covariance.
