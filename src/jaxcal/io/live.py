@@ -281,7 +281,8 @@ class LiveCalibrator:
         dx, dy = X[None] - mx[:, None, None], Y[None] - my[:, None, None]
         cov = np.stack([np.stack([(w * dx * dx).sum((1, 2)), (w * dx * dy).sum((1, 2))], -1),
                         np.stack([(w * dx * dy).sum((1, 2)), (w * dy * dy).sum((1, 2))], -1)], -2)
-        return cov
+        # as `run_pgp` reports it: the grid read as a histogram density (+ cell^2 / 12 per free axis)
+        return cov + pgp.cell_variance(g.cell_m, cov.shape[0], tuple(self.ids.index(s) for s in self.frame))
 
     def _say(self, line: str) -> None:
         if self.out is not None:
