@@ -895,7 +895,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
             starts = jax.tree.map(lambda a: jnp.repeat(a[None], s_count, axis=0), start)
             refit, _ = _fit_starts(starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc))
             state = jax.tree.map(lambda a: a[0], refit)
-    obs = obs_med
+    obs = obs_pairs = obs_med  # obs_pairs: what the posterior of estimate=mean sees, one per pair
     if p.summary == "all":
         i_a, j_a, z_a, w_a = observations(r, "all")
         obs = to_obs(i_a, j_a, z_a, w_a if pw is None else pw[i_a, j_a])
@@ -906,9 +906,8 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         pair_i, pair_j = jnp.asarray(_pad(uniq // m, size)), jnp.asarray(_pad(uniq % m, size))
         state = _irls_all(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb, p.solver, p.tol,
                           p.max_steps, p.irls_iters)
-        obs_pairs = _pair_locations(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb)
-    else:
-        obs_pairs = obs_med
+        if p.estimate == "mean":  # the posterior's pair observations: where the all-ranges fit puts them
+            obs_pairs = _pair_locations(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb)
 
     x_sub = np.asarray(state.x)
     x_frame_sub = to_frame(x_sub, int(remap[a0]), int(remap[a1]), int(remap[a2]))
