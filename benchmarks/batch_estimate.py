@@ -63,10 +63,13 @@ def main(argv=None) -> int:
         return 1
     with tempfile.TemporaryDirectory() as tmp:
         datasets = import_real(Path(tmp))
+    if not datasets:
+        print("batch_estimate: no dwm1001-autocal scenario found (../shared/datasets)", file=sys.stderr)
+        return 1
     wanted = [s for s in args.scenarios.split(",") if s]
     datasets = [(n, ds) for n, ds in datasets if not wanted or any(w in n for w in wanted)]
     if not datasets:
-        print("batch_estimate: no dwm1001-autocal scenario found (../shared/datasets)", file=sys.stderr)
+        print(f"batch_estimate: no scenario matches --scenarios {args.scenarios}", file=sys.stderr)
         return 1
     summary = {}
     for name, ds in datasets:
