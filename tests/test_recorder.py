@@ -289,7 +289,8 @@ def test_live_pty_recording_exact_frames_and_sigterm(tmp_path):
             proc.kill()
         os.close(master)
         os.close(slave)
-    assert proc.returncode == 0, stderr
+    assert proc.returncode == 143, stderr  # 128 + SIGTERM, the file complete
+    assert stderr.splitlines()[-1].startswith("jaxcal: terminated (SIGTERM): recording complete")
     summary = json.loads(stdout)
     assert summary["stopped"] == "sigterm" and summary["frames"] == len(valid)
     assert summary["checksum_failures"] > 0
@@ -468,7 +469,7 @@ def test_live_pgp_failures_keep_the_recording(tmp_path):
 def test_live_pgp_over_a_pty_runs_during_the_recording(tmp_path):
     """The serial path: record_serial calls the live filter at each flush while frames still arrive."""
     from jaxcal.io.live import LiveCalibrator
-    from jaxcal.io.recorder import record_serial
+    from jaxcal.io.capture import record_serial
 
     master, slave, port = _pty()
     data = live_capture(500, seed=7)

@@ -5,7 +5,16 @@
 
     jaxcal record ... --calibrate pgp [--config A0,A1,A2] [--set KEY=VALUE] [--min-epochs 20]
 
-See `jaxcal.io.recorder` for the crash-safety design and the mapping of frames to mesh/trajectory files.
+See `jaxcal.io.recorder` for the crash-safety design and the mapping of frames to mesh/trajectory files,
+`jaxcal.io.link` for the link faults (device lost and reopened for --reconnect seconds, no data, garbage).
+
+Crash recovery: every decoded frame is in OUT.h5.journal before the next read; after a crash, power loss
+or kill, `jaxcal record --replay OUT.h5.journal -o OUT.h5` rebuilds OUT.h5 (and removes the journal). A
+`record` onto an existing OUT.h5 or journal refuses and says what is there.
+
+Exit status: 0 done (--duration, end of a replay); 130 Ctrl-C (SIGINT) and 143 SIGTERM, the file complete;
+3 the device was lost and did not come back within --reconnect seconds, the file complete up to then;
+2 bad input or nothing to write.
 `--calibrate pgp` is live (`jaxcal.io.live`: startup and restart rules, the settled flag): the filter
 runs on the epochs as they close, at each flush (replay: each second of frame time), node positions go
 to stderr, and OUT.pgp.h5 holds the live result (its track: every epoch's live estimate). The recording
@@ -36,7 +45,11 @@ def add_arguments(p) -> None:
                    help="DWM1001: TLV polling rate, and frame rate assumed when replaying a capture [Hz]")
     p.add_argument("--init", action="store_true", help="DWM1001 shell: enter the shell and send `lec` first")
     p.add_argument("--name", default=None, help="dataset name (default: output file stem)")
-    p.add_argument("--keep-journal", action="store_true", help="keep OUT.h5.journal after a clean stop")
+    p.add_argument("--keep-journal", action="store_true",
+                   help="keep OUT.h5.journal after a clean stop (or after recovering OUT.h5 from it)")
+    p.add_argument("--reconnect", type=float, default=30.0, metavar="S",
+                   help="a lost device (unplugged): reopen the same port for up to S seconds (default 30; "
+                        "0: end the recording at the loss)")
     p.add_argument("--calibrate", default=None, metavar="METHOD",
                    help="live calibration while recording (pgp: the filter runs on epochs as they close, "
                         "positions on stderr; OUT.pgp.h5 at the end); other mesh methods run once at the end")
@@ -98,26 +111,43 @@ def run(args) -> int:
         live = LiveCalibrator(params, frame, min_epochs=args.min_epochs,
                               stream=None if args.quiet else sys.stderr)
     on_flush = live.guarded_update if live is not None else None
+    if not args.reconnect >= 0:
+        raise JaxcalError(f"--reconnect must be >= 0 seconds, got {args.reconnect}")
     t0 = time.monotonic()
+    recovering = False
     if args.replay:
+        src = Path(args.replay)
+        if out.exists() and src.exists() and out.resolve() == src.resolve():
+            raise JaxcalError(f"-o {out} is the input: it would be written over; choose another -o")
+        recovering = src.name.endswith(".journal") and (src.parent / src.name[: -len(".journal")]).resolve() \
+            == out.resolve()
         rec = recorder.replay(args.replay, args.protocol, kw, rate=args.rate, on_flush=on_flush)
         stopped = "end of input"
     else:
         if args.protocol is None:
             raise JaxcalError("--protocol is required with --port")
+        from jaxcal.io import capture
+
         rec = recorder.Recording(args.protocol, **kw)
-        status = None if args.quiet else recorder.status_printer(sys.stderr)
-        stopped = recorder.record_serial(
+        status = None if args.quiet else capture.status_printer(sys.stderr)
+        stopped = capture.record_serial(
             rec, args.port, out, baud=args.baud, duration=args.duration, raw_out=args.raw_out,
-            rate=args.rate, shell_init=args.init, status=status, on_flush=on_flush,
+            rate=args.rate, shell_init=args.init, status=status, on_flush=on_flush, reconnect_s=args.reconnect,
         )
     if live is not None:
         live.guarded_update(rec, final=True)  # the last epochs; sets the frame written to the file
     written = rec.write(out)  # the recording first: a calibration failure never loses it
-    if written:
-        recorder.finish_journal(rec, args.keep_journal)
+    if written and not args.replay:
+        capture.finish_journal(rec, args.keep_journal)
+    elif not written and rec.journal is not None and rec.journal.frames == 0:
+        rec.journal.path.unlink(missing_ok=True)  # nothing to recover: do not block the next recording
+        rec.journal = None
+    if written and recovering and not args.keep_journal:
+        Path(args.replay).unlink()
     summary = rec.summary()
     summary.update(output=str(out) if written else None, stopped=stopped, seconds=time.monotonic() - t0)
+    if rec.link is not None:
+        summary["link"] = rec.link
     calib_error = None
     if written and args.calibrate:
         try:
@@ -127,21 +157,33 @@ def run(args) -> int:
             summary["calibration"] = {"method": args.calibrate, "error": calib_error}
     if args.json:
         print_json(summary)
-    elif written and (args.replay or args.quiet):
-        sys.stderr.write(
-            f"{summary['frames']} frames, {summary['ranges']} ranges, {summary['checksum_failures']} checksum "
-            f"failures, {summary['bytes_skipped']} bytes skipped -> {out}\n"
-        )
+    counts = (f"{summary['frames']} frames, {summary['ranges']} ranges, {summary['checksum_failures']} checksum "
+              f"failures, {summary['bytes_skipped']} bytes skipped")
+    code = {"sigint": 130, "sigterm": 143, "device lost": 3}.get(stopped, 0)
+    why = {"sigint": "interrupted (Ctrl-C)", "sigterm": "terminated (SIGTERM)",
+           "device lost": "the device was lost and did not come back"}.get(stopped)
+    if stopped == "error":
+        detail = (rec.link or {}).get("error") or "the reader failed"
+        where = f"; {out} holds everything received" if written else ""
+        raise JaxcalError(f"recording stopped: {detail}{where}")
     if not written:
         where = f"; the raw frames are in {out}.journal" if rec.journal is not None else ""
-        raise JaxcalError(
-            f"no dataset written: {summary['ranges']} ranges between {summary['nodes']} nodes "
-            f"({summary['frames']} frames, {summary['checksum_failures']} checksum failures, "
-            f"{summary['bytes_skipped']} bytes skipped) is not enough for a {rec.kind() or 'mesh'} file{where}"
-        )
+        msg = (f"no dataset written: {summary['ranges']} ranges between {summary['nodes']} nodes "
+               f"({counts}) is not enough for a {rec.kind() or 'mesh'} file{where}")
+        if why is None:
+            raise JaxcalError(msg)
+        sys.stderr.write(f"jaxcal: {why}: {msg}\n")
+        return code
+    if why is not None:
+        sys.stderr.write(f"jaxcal: {why}: recording complete, {counts} -> {out}\n")
+    elif recovering:
+        gone = "" if args.keep_journal else "; journal removed"
+        sys.stderr.write(f"jaxcal: recovered {counts} from {args.replay} -> {out}{gone}\n")
+    elif not args.json and (args.replay or args.quiet):
+        sys.stderr.write(f"{counts} -> {out}\n")
     if calib_error is not None:
         raise JaxcalError(f"recording written to {out}, but --calibrate {args.calibrate} failed: {calib_error}")
-    return 0
+    return code
 
 
 def _overrides(items) -> dict:

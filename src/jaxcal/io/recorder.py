@@ -1,17 +1,20 @@
 """Crash-safe recording of UWB ranges from a serial device into a jaxcal contract file.
 
-Design (crash safety). Two files are kept while recording to ``OUT.h5``:
+Design (crash safety). Two files are kept while recording to ``OUT.h5`` (the live loop is
+`jaxcal.io.capture.record_serial`, its reader thread `jaxcal.io.link`):
 
-* an append-only **journal** ``OUT.h5.journal``: a header, then one record per validated raw frame
-  (``u32 length, f64 time, payload, u32 crc32``), written and ``fsync``'d at every flush (at least once
-  per second). A kill can only tear the last record, which the reader detects by its length or CRC and
-  drops. The journal alone can rebuild the recording: ``jaxcal record --replay OUT.h5.journal -o OUT.h5``;
-* an HDF5 **snapshot** ``OUT.h5``, rewritten atomically (temporary file, fsync, ``os.replace``) at each
-  flush once the ranges make a valid dataset, so that ``OUT.h5`` is always a complete, readable contract
-  file holding everything up to the last snapshot. When a snapshot takes long (big recordings), it is
-  rewritten less often (at most 10 % of the time is spent on it); the journal is still flushed every
-  second. On a clean stop (``--duration``, Ctrl-C, SIGTERM) the final snapshot is written and the
-  journal removed.
+* an append-only **journal** ``OUT.h5.journal`` (`jaxcal.io.journal`): a header, then one record per
+  validated raw frame (``u32 length, f64 time, payload, u32 crc32``), handed to the kernel (`os.write`)
+  by the reader thread as soon as the frame is decoded, before the next read, and ``fsync``'d on the
+  flush period (1 s). A SIGKILL loses at most the frame being decoded; a kill can only tear the last
+  record, which the reader detects by its length or CRC and drops. The journal alone rebuilds the
+  recording: ``jaxcal record --replay OUT.h5.journal -o OUT.h5`` (the recovery command);
+* an HDF5 **snapshot** ``OUT.h5``, rewritten atomically (temporary file, fsync, ``os.replace``, fsync of
+  the folder) at each flush once the ranges make a valid dataset, so that ``OUT.h5`` is always a
+  complete, readable contract file holding everything up to the last snapshot (a subset of the
+  journal). When a snapshot takes long (big recordings), it is rewritten less often (at most 10 % of
+  the time is spent on it). On a clean stop (``--duration``, Ctrl-C, SIGTERM, a device that did not come
+  back) the final snapshot is written and the journal removed.
 
 The snapshot also holds the raw validated frames in the optional group ``raw`` (``raw/frames``: all
 frames' bytes concatenated, uint8; ``raw/offsets``: (F + 1,) int64 frame boundaries; ``raw/time``: (F,)
@@ -47,19 +50,14 @@ from __future__ import annotations
 import json
 import math
 import os
-import queue
-import signal
-import struct
-import sys
-import threading
 import time
-import zlib
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from jaxcal.errors import JaxcalError
+from jaxcal.io.journal import JOURNAL_MAGIC, JournalWriter, read_journal, sync_dir
 from jaxcal.io.serial import PROTOCOLS, make_decoder
 from jaxcal.io.serial.frames import Frame
 
@@ -69,72 +67,11 @@ __all__ = [
     "read_journal",
     "Recording",
     "replay",
-    "record_serial",
     "DEFAULT_BAUD",
 ]
 
-JOURNAL_MAGIC = b"JXCJRNL1"
 HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 DEFAULT_BAUD = {"nlink": 921600, "dwm1001-tlv": 115200, "dwm1001-shell": 115200}
-_REC = struct.Struct("<Id")
-
-
-# -------------------------------------------------------------------------------------------- journal
-
-
-class JournalWriter:
-    """Append-only journal of raw frames; `flush()` writes the buffered records and fsyncs."""
-
-    def __init__(self, path: str | os.PathLike, header: dict) -> None:
-        self.path = Path(path)
-        self._f = open(self.path, "xb")  # never overwrite: an existing journal is an unrecovered recording
-        h = json.dumps(header).encode()
-        self._pending = [JOURNAL_MAGIC + struct.pack("<I", len(h)) + h]
-        self.flush()
-
-    def append(self, raw: bytes, t: float) -> None:
-        """Queue one frame record (written at the next flush)."""
-        self._pending.append(_REC.pack(len(raw), t) + raw + struct.pack("<I", zlib.crc32(raw)))
-
-    def flush(self) -> None:
-        """Write queued records and fsync the file."""
-        if self._pending:
-            self._f.write(b"".join(self._pending))
-            self._pending.clear()
-        self._f.flush()
-        os.fsync(self._f.fileno())
-
-    def close(self) -> None:
-        """Flush and close."""
-        if not self._f.closed:
-            self.flush()
-            self._f.close()
-
-
-def read_journal(path: str | os.PathLike) -> tuple[dict, list[tuple[float, bytes]], int]:
-    """Read a journal. Returns (header, [(time_s, raw frame)], torn_bytes): a torn or corrupt tail is
-    dropped and its size returned (a kill mid-write leaves at most one partial record)."""
-    data = Path(path).read_bytes()
-    if not data.startswith(JOURNAL_MAGIC) or len(data) < 12:
-        raise JaxcalError(f"{path}: not a jaxcal record journal")
-    (hl,) = struct.unpack_from("<I", data, 8)
-    try:
-        header = json.loads(data[12 : 12 + hl])
-    except ValueError:
-        raise JaxcalError(f"{path}: journal header is corrupt") from None
-    o = 12 + hl
-    out = []
-    while o + _REC.size <= len(data):
-        n, t = _REC.unpack_from(data, o)
-        e = o + _REC.size + n
-        if e + 4 > len(data):
-            break
-        raw = data[o + _REC.size : e]
-        if zlib.crc32(raw) != struct.unpack_from("<I", data, e)[0]:
-            break
-        out.append((t, raw))
-        o = e + 4
-    return header, out, len(data) - o
 
 
 # ------------------------------------------------------------------------------------------ recording
@@ -173,8 +110,9 @@ class Recording:
         self._last_loc: bytes | None = None
         self.time_source = "host"
         self.start_wall_time = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-        self.journal: JournalWriter | None = None
+        self.journal: JournalWriter | None = None  # live: written by the reader thread (`jaxcal.io.link`)
         self.frame_ids: tuple[str, str, str] | None = None  # written as the mesh's `default` configuration
+        self.link: dict | None = None  # live: link counters and fault lines (`jaxcal.io.capture`)
 
     # ---- ingestion
     def add(self, frames: list[Frame], t: float) -> int:
@@ -183,8 +121,6 @@ class Recording:
         for f in frames:
             self.raw.append(f.raw)
             self.raw_time.append(t)
-            if self.journal is not None:
-                self.journal.append(f.raw, t)
             if self.protocol == "dwm1001-tlv" and f.type.startswith("loc_get"):
                 if f.raw == self._last_loc:
                     self.duplicates += 1
@@ -357,6 +293,7 @@ class Recording:
             finally:
                 os.close(fd)
             os.replace(tmp, path)
+            sync_dir(path)
         finally:
             if tmp.exists():
                 tmp.unlink()
@@ -502,213 +439,3 @@ def _read_h5_raw(p: Path) -> tuple[dict, list[tuple[float, bytes]]]:
     if off.size != t.size + 1 or off[-1] != len(data):
         raise JaxcalError(f"{p}: /raw is inconsistent (offsets do not match frames)")
     return {k: str(v) for k, v in attrs.items()}, [(float(t[i]), data[off[i] : off[i + 1]]) for i in range(t.size)]
-
-
-# -------------------------------------------------------------------------------------------- live
-
-
-def record_serial(
-    rec: Recording,
-    port: str,
-    out: str | os.PathLike,
-    baud: int | None = None,
-    duration: float | None = None,
-    raw_out: str | os.PathLike | None = None,
-    flush_s: float = 1.0,
-    rate: float = 10.0,
-    shell_init: bool = False,
-    status: Callable[[dict, float, bool], None] | None = None,
-    on_flush: Callable[[Recording], None] | None = None,
-) -> str:
-    """Read `port` until `duration` seconds pass, Ctrl-C or SIGTERM; journal + snapshot as described in
-    the module docstring. Returns why it stopped (``"duration"``, ``"interrupt"``, ``"sigterm"``).
-
-    Args:
-        rec: the `Recording` to fill (its protocol selects the reader).
-        port: a device path or any pyserial URL (``loop://``, ``socket://``, a pty path).
-        out: the HDF5 file; the journal is ``out + ".journal"``.
-        baud: baud rate (default per protocol: NLink 921600, DWM1001 115200).
-        duration: seconds to record (None: until stopped).
-        raw_out: also write every byte read to this file (a raw capture for `replay`).
-        flush_s: journal flush period [s] (at most 1 s is allowed by the CLI).
-        rate: DWM1001 TLV polling rate [Hz].
-        shell_init: DWM1001 shell: send ``\\r\\r``, wait 1.1 s, send ``lec\\r`` (lec toggles the stream).
-        status: callback(summary, elapsed_s, final) for the status line.
-        on_flush: called with the recording after each journal flush (live calibration); its
-            exceptions are the caller's to contain.
-    """
-    import serial  # pyserial
-
-    out = Path(out)
-    if not out.parent.exists():
-        raise JaxcalError(f"{out}: folder {out.parent} does not exist")
-    jpath = Path(str(out) + ".journal")
-    if jpath.exists():
-        raise JaxcalError(
-            f"{jpath} exists (an interrupted recording?): rebuild it with `jaxcal record --replay {jpath} -o {out}`"
-            " or delete it"
-        )
-    baud = baud or DEFAULT_BAUD[rec.protocol]
-    import h5py  # noqa: F401 - heavy imports before the port opens, not during the first snapshot
-
-    import jaxcal.io.hdf5  # noqa: F401
-
-    try:
-        ser = serial.serial_for_url(port, baudrate=baud, timeout=0.05)
-    except (serial.SerialException, ValueError, OSError) as e:
-        raise JaxcalError(f"{port}: cannot open serial port ({' '.join(str(e).split())})") from None
-    rawf = open(raw_out, "wb") if raw_out else None
-    rec.journal = JournalWriter(
-        jpath, {"protocol": rec.protocol, "self_id": rec.self_id or "", "time_source": "host",
-                "start_wall_time": rec.start_wall_time, "port": port, "baud": baud},
-    )
-    stop = {"why": None}
-
-    def on_term(signum, frame):
-        stop["why"] = "sigterm"
-
-    old = signal.signal(signal.SIGTERM, on_term)
-    t0 = time.monotonic()
-    last_flush = last_snap = last_status = t0
-    snap_cost = 0.0
-    dec = rec.decoder
-    reader = None
-    try:
-        if rec.protocol == "dwm1001-shell" and shell_init:
-            ser.write(b"\r\r")
-            time.sleep(1.1)
-            ser.reset_input_buffer()
-            ser.write(b"lec\r")
-        next_poll = t0
-        while stop["why"] is None:
-            now = time.monotonic()
-            if duration is not None and now - t0 >= duration:
-                stop["why"] = "duration"
-                break
-            if rec.protocol == "dwm1001-tlv":
-                if now < next_poll:
-                    time.sleep(min(next_poll - now, 0.05))
-                    continue
-                next_poll = now + 1.0 / rate
-                ser.reset_input_buffer()
-                ser.write(b"\x0c\x00")  # dwm_loc_get, one write (the module delimits requests by idle time)
-                deadline = time.monotonic() + 0.2
-                frames: list[Frame] = []
-                while time.monotonic() < deadline and not frames:
-                    data = ser.read(max(1, ser.in_waiting))
-                    if data:
-                        if rawf:
-                            rawf.write(data)
-                        frames = dec.feed(data)
-                frames += dec.finish()
-                rec.add(frames, time.monotonic() - t0)
-            else:
-                if reader is None:
-                    reader = _Reader(ser)
-                try:
-                    data, t_read = reader.queue.get(timeout=0.05)
-                except queue.Empty:
-                    data = b""
-                if reader.error is not None:
-                    raise JaxcalError(f"{port}: read failed ({reader.error})")
-                if data:
-                    if rawf:
-                        rawf.write(data)
-                    rec.add(dec.feed(data), t_read - t0)
-            now = time.monotonic()
-            if now - last_flush >= flush_s:
-                rec.journal.flush()
-                if rawf:
-                    rawf.flush()
-                last_flush = now
-                # the snapshot is rewritten whole: keep it under ~10 % of the time for big recordings
-                if now - last_snap >= max(flush_s, min(10 * snap_cost, 60.0)):
-                    s0 = time.monotonic()
-                    if rec.write(out):
-                        snap_cost = time.monotonic() - s0
-                    last_snap = now
-                if on_flush is not None:
-                    on_flush(rec)
-            if status is not None and now - last_status >= 0.5:
-                status(rec.summary(), now - t0, False)
-                last_status = now
-    except KeyboardInterrupt:
-        stop["why"] = "interrupt"
-    finally:
-        signal.signal(signal.SIGTERM, old)
-        if reader is not None:
-            reader.stop()
-            while not reader.queue.empty():
-                data, t_read = reader.queue.get()
-                if rawf:
-                    rawf.write(data)
-                rec.add(dec.feed(data), t_read - t0)
-        try:
-            ser.close()
-        except Exception:  # noqa: BLE001 - closing a vanished port must not hide the recording
-            pass
-        rec.add(dec.finish(), time.monotonic() - t0)
-        rec.journal.close()
-        if rawf:
-            rawf.close()
-    if status is not None:
-        status(rec.summary(), time.monotonic() - t0, True)
-    return stop["why"] or "duration"
-
-
-class _Reader:
-    """Reads the port on a thread, so that bytes keep flowing while a snapshot is written (a serial
-    driver's buffer holds well under a second at 921600 baud). Items: (bytes, host monotonic time)."""
-
-    def __init__(self, ser) -> None:
-        self.ser = ser
-        self.queue: queue.Queue = queue.Queue()
-        self.error: str | None = None
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="jaxcal-serial-reader", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        try:
-            while not self._stop.is_set():
-                data = self.ser.read(max(1, self.ser.in_waiting))
-                if data:
-                    self.queue.put((data, time.monotonic()))
-        except Exception as e:  # noqa: BLE001 - reported by the main loop as one line
-            self.error = " ".join(str(e).split()) or type(e).__name__
-            self.queue.put((b"", time.monotonic()))
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=1.0)
-
-
-def finish_journal(rec: Recording, keep: bool) -> None:
-    """After the final snapshot was written: remove the journal unless `keep`."""
-    if rec.journal is not None and not keep:
-        try:
-            rec.journal.path.unlink()
-        except FileNotFoundError:
-            pass
-
-
-def status_printer(stream=sys.stderr) -> Callable[[dict, float, bool], None]:
-    """A status-line callback: rewrites one line on a terminal, prints a line every 5 s otherwise."""
-    tty = stream.isatty()
-    state = {"t": 0.0, "frames": 0, "ranges": 0, "printed": -1e9}
-
-    def show(s: dict, elapsed: float, final: bool) -> None:
-        dt = max(elapsed - state["t"], 1e-9)
-        fps = (s["frames"] - state["frames"]) / dt
-        rps = (s["ranges"] - state["ranges"]) / dt
-        state.update(t=elapsed, frames=s["frames"], ranges=s["ranges"])
-        line = (f"{elapsed:7.1f} s  frames {s['frames']} ({fps:.1f}/s)  ranges {s['ranges']} ({rps:.1f}/s)  "
-                f"checksum failures {s['checksum_failures']}  skipped {s['bytes_skipped']} B  nodes {s['nodes']}")
-        if tty:
-            stream.write("\r" + line + ("\n" if final else "\x1b[K"))
-        elif final or elapsed - state["printed"] >= 5.0:
-            stream.write(line + "\n")
-            state["printed"] = elapsed
-        stream.flush()
-
-    return show

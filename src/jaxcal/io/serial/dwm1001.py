@@ -199,6 +199,13 @@ class TLVDecoder:
         """End of a response window or of the stream: resolve everything pending."""
         return self._run(True)
 
+    def discard(self) -> int:
+        """Drop the pending bytes (the link broke mid-response), counted as skipped; returns how many."""
+        n = len(self._buf)
+        self.stats.bytes_skipped += n
+        self._buf.clear()
+        return n
+
     def _candidate(self, buf: bytearray, p: int, final: bool) -> int:
         """End offset of a response starting at p, or _MORE / _BAD / _FAIL."""
         n = len(buf)
@@ -437,6 +444,15 @@ class ShellDecoder:
         self._buf.clear()
         self._discarding = False
         return out
+
+    def discard(self) -> int:
+        """Drop the unfinished line (the link broke or the recording stopped mid-line: parsing it could
+        read a cut number as a whole one), counted as skipped; returns how many bytes."""
+        n = len(self._buf)
+        self.stats.bytes_skipped += n
+        self._buf.clear()
+        self._discarding = False
+        return n
 
     def _line(self, line: bytes, out: list[Frame], terminated: bool) -> None:
         try:

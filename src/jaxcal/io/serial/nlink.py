@@ -419,6 +419,13 @@ class NLinkDecoder:
         """End of stream: resolve what is pending (incomplete candidates are dropped and counted)."""
         return self._run(final=True)
 
+    def discard(self) -> int:
+        """Drop the pending bytes (the link broke mid-frame), counted as skipped; returns how many."""
+        n = len(self._buf)
+        self.stats.bytes_skipped += n
+        self._buf.clear()
+        return n
+
     # A candidate at position p: (status, length, frame)
     def _known(self, buf: bytearray, p: int, final: bool, veto: bool = True):
         n = len(buf) - p
