@@ -2,8 +2,8 @@
 
 `record_serial` opens the port first (a bad port fails before any file is made), creates the journal
 (`jaxcal.io.journal`), starts the reader thread (`jaxcal.io.link`: it decodes and journals every frame
-before reading again), and only then imports h5py / JAX for the snapshots, so no frame waits for that
-import. The main thread moves the decoded frames into the `Recording`, fsyncs the journal and the raw
+before reading again), and only then imports h5py / JAX for the snapshots, on a thread of its own, so
+that neither a frame nor a fault line waits for that import. The main thread moves the decoded frames into the `Recording`, fsyncs the journal and the raw
 capture every ``flush_s``, rewrites the atomic HDF5 snapshot, runs ``on_flush`` (the live filter),
 prints the status line and one line per link fault (see `jaxcal.io.link`).
 
@@ -145,13 +145,13 @@ def record_serial(
         for s in (signal.SIGINT, signal.SIGTERM):
             old[s] = signal.signal(s, on_signal)
     link.start()
+    # h5py and JAX (via jaxcal.data) take a second or more to import: on a thread of their own, so that
+    # neither the reader nor the fault checks wait for them; the first snapshot waits for them
+    imports = threading.Thread(target=_snapshot_imports, name="jaxcal-imports", daemon=True)
+    imports.start()
     last_flush = last_snap = last_status = t0
     snap_cost = 0.0
     try:
-        import h5py  # noqa: F401 - heavy imports (JAX via jaxcal.data) while the reader thread records
-
-        import jaxcal.io.hdf5  # noqa: F401
-
         while stop["why"] is None:
             try:
                 rec.add(*link.frames.get(timeout=0.05))
@@ -175,12 +175,12 @@ def record_serial(
                     os.fsync(raw_fd)
                 last_flush = now
                 # the snapshot is rewritten whole: keep it under ~10 % of the time for big recordings
-                if now - last_snap >= max(flush_s, min(10 * snap_cost, 60.0)):
+                if not imports.is_alive() and now - last_snap >= max(flush_s, min(10 * snap_cost, 60.0)):
                     s0 = time.monotonic()
                     if rec.write(out):
                         snap_cost = time.monotonic() - s0
                     last_snap = now
-                if on_flush is not None:
+                if on_flush is not None and not imports.is_alive():  # never two threads importing JAX
                     on_flush(rec)
             if status is not None and now - last_status >= 0.5:
                 status(dict(rec.summary(), link=link.state_text(now)), now - t0, False)
@@ -189,6 +189,7 @@ def record_serial(
         for s, h in old.items():
             signal.signal(s, h)
         link.stop()
+        imports.join()  # the caller writes the final snapshot next
         for item in link.drain():
             rec.add(*item)
         _say_events(link, warn)
@@ -201,6 +202,12 @@ def record_serial(
     if status is not None:
         status(dict(rec.summary(), link=link.state_text(time.monotonic())), time.monotonic() - t0, True)
     return stop["why"] or "duration"
+
+
+def _snapshot_imports() -> None:
+    import h5py  # noqa: F401
+
+    import jaxcal.io.hdf5  # noqa: F401
 
 
 def _say_events(link: SerialLink, warn) -> None:

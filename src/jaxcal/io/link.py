@@ -18,7 +18,7 @@ Faults (one line each, reported by the main thread through `events` and `check`)
   recording is closed with everything received.
 * **no data** for ``stall_s`` seconds while the port is open (module off, output disabled, TLV requests
   unanswered); a second line when data comes back.
-* **garbage**: at least 256 bytes in 2 s and not one valid frame: a wrong baud rate or protocol; a
+* **garbage**: at least 256 bytes and 1 s since the last valid frame: a wrong baud rate or protocol; a
   second line when valid frames come back. Frames before and after are kept.
 """
 
@@ -35,7 +35,7 @@ __all__ = ["SerialLink", "open_port", "STALL_S", "RECONNECT_S"]
 
 STALL_S = 2.0
 RECONNECT_S = 30.0
-GARBAGE_WINDOW_S = 2.0
+GARBAGE_S = 1.0
 GARBAGE_BYTES = 256
 STABLE_S = 5.0
 RETRY_S = 0.25
@@ -92,18 +92,20 @@ class SerialLink:
         self.last_rx = t0  # host monotonic time of the last bytes received
         self.last_gap = 0.0
         self.bytes_rx = 0
+        self.last_frame = t0  # host monotonic time of the last valid frame
+        self.bytes_since_frame = 0
         self.reads = 0
         self.losses = 0
         self.reconnects = 0
         self.faults: list[str] = []  # every fault line, in order (for --json)
         self._stop = threading.Event()
         self._next_poll = t0
+        self._flush_next = True  # TLV: flush stale input before the first request
         self._up_since = t0
         self._lost_since: float | None = None
         # main-thread fault checks
         self._stalled = False
         self._garbage = False
-        self._win = (t0, 0, 0)  # (time, bytes_fed, frames) at the window start
         self._thread = threading.Thread(target=self._run, name="jaxcal-serial-link", daemon=True)
 
     # ------------------------------------------------------------------------------ thread control
@@ -173,14 +175,17 @@ class SerialLink:
             write_all(self.raw_fd, data)
         self.bytes_rx += len(data)
         self.reads += 1
-        self.last_gap = now - self.last_rx
+        self.last_gap = max(self.last_gap, now - self.last_rx)  # the longest silence since `check` reset it
         self.last_rx = now
+        self.bytes_since_frame += len(data)
         return self._emit(self.decoder.feed(data), now - self.t0)
 
     def _emit(self, frames: list, t: float) -> int:
         if frames:
             self.journal.extend([f.raw for f in frames], t)
             self.frames.put((frames, t))
+            self.last_frame = time.monotonic()
+            self.bytes_since_frame = 0
         return len(frames)
 
     def _read(self) -> None:
@@ -190,22 +195,36 @@ class SerialLink:
             self._got(data, time.monotonic())
 
     def _poll(self) -> None:
-        """One dwm_loc_get request and its answer (the module delimits requests by idle time, so the
-        request goes out in one write; stale bytes are flushed first)."""
+        """One dwm_loc_get request and its answer. The request goes out in one write (the module
+        delimits requests by idle time). Stale bytes are flushed only before the first request (and
+        after a reconnect): a late answer is then decoded when it arrives (the stream decoder resyncs
+        on ``40 01``) instead of being thrown away unread, and every byte read reaches ``--raw-out``."""
         ser = self.ser
         now = time.monotonic()
         if now < self._next_poll:
             self._stop.wait(min(self._next_poll - now, 0.05))
             return
         self._next_poll = now + 1.0 / self.rate
-        self._port(ser.reset_input_buffer)
+        if self._flush_next:
+            self._port(ser.reset_input_buffer)
+            self._flush_next = False
         self._port(ser.write, b"\x0c\x00")
         deadline = now + 0.2
         got = 0
-        while not got and time.monotonic() < deadline and not self._stop.is_set():
+        while not got and not self._stop.is_set() and time.monotonic() < deadline:
             data = self._port(lambda: ser.read(max(1, ser.in_waiting)))
             if data:
                 got = self._got(data, time.monotonic())
+        if not self.decoder.pending:
+            return
+        # bytes of an unfinished answer: wait for the rest while it keeps coming (at most 0.2 s more), then
+        # close it (a response that ends only by silence, e.g. pos_get, ends here; a cut one is dropped)
+        quiet, limit = time.monotonic() + 0.05, time.monotonic() + 0.2
+        while time.monotonic() < min(quiet, limit) and not self._stop.is_set():
+            data = self._port(lambda: ser.read(max(1, ser.in_waiting)))
+            if data:
+                self._got(data, time.monotonic())
+                quiet = time.monotonic() + 0.05
         self._emit(self.decoder.finish(), time.monotonic() - self.t0)
 
     def _init_shell(self) -> None:
@@ -267,8 +286,10 @@ class SerialLink:
                 continue
             self.ser = ser
             self.state = "ok"
+            self._flush_next = True
             self.reconnects += 1
-            self._up_since = self.last_rx = time.monotonic()
+            self._up_since = self.last_rx = self.last_frame = time.monotonic()
+            self.bytes_since_frame = 0
             self._fault(f"{self.port}: device back after {self._up_since - now:.1f} s; recording goes on")
             if self.shell_init:
                 self._init_shell()  # a failure here is one more loss, handled by the loop
@@ -280,27 +301,23 @@ class SerialLink:
         """Fault lines due at host time `now` (no data, garbage), each said once and its end once."""
         out: list[str] = []
         if self.state != "ok":
-            self._win = (now, self.decoder.stats.bytes_fed, self.decoder.stats.frames)
             return out
         idle = now - self.last_rx
         if idle >= self.stall_s and not self._stalled:
             self._stalled = True
+            self.last_gap = 0.0
             out.append(f"{self.port}: no data for {idle:.1f} s ({HINTS[self.protocol]})")
         elif idle < self.stall_s and self._stalled:
             self._stalled = False
             out.append(f"{self.port}: data again after {self.last_gap:.1f} s of silence")
-        t_w, fed_w, fr_w = self._win
-        if now - t_w >= GARBAGE_WINDOW_S:
-            st = self.decoder.stats
-            dfed, dfr = st.bytes_fed - fed_w, st.frames - fr_w
-            if dfed >= GARBAGE_BYTES and dfr == 0 and not self._garbage:
-                self._garbage = True
-                out.append(f"{self.port}: {dfed} bytes in {now - t_w:.1f} s but no valid frame: wrong --baud "
-                           f"(now {self.baud}) or --protocol (now {self.protocol})?")
-            elif dfr > 0 and self._garbage:
-                self._garbage = False
-                out.append(f"{self.port}: valid frames again ({dfr} in the last {now - t_w:.1f} s)")
-            self._win = (now, st.bytes_fed, st.frames)
+        since, nbytes = now - self.last_frame, self.bytes_since_frame
+        if nbytes >= GARBAGE_BYTES and since >= GARBAGE_S and not self._garbage:
+            self._garbage = True
+            out.append(f"{self.port}: {nbytes} bytes in {since:.1f} s but no valid frame: wrong --baud "
+                       f"(now {self.baud}) or --protocol (now {self.protocol})?")
+        elif self._garbage and nbytes < GARBAGE_BYTES and since < GARBAGE_S:
+            self._garbage = False
+            out.append(f"{self.port}: valid frames again")
         self.faults.extend(out)
         return out
 
