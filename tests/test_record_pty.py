@@ -23,6 +23,7 @@ import pytest
 from ptydev import (
     Device,
     kill_run,
+    lec_lines,
     nlink_frames,
     open_pty,
     raws,
@@ -82,6 +83,21 @@ def test_sigkill_at_20_random_moments_loses_at_most_the_frame_being_decoded(tmp_
     assert "recovered" in p.stderr and "journal removed" in p.stderr
     assert _h5_frames(out) == raws("nlink", nlink_frames(250, r["seed"])[: r["recovered"]])
     assert not journal.exists()
+
+
+def test_decoders_discard_a_cut_frame():
+    """A link that breaks mid-frame: the pending bytes are dropped and counted, never parsed (a cut shell
+    line `...,6.5` of `...,6.51` would otherwise read as a whole, wrong distance)."""
+    from jaxcal.io.serial import make_decoder
+
+    line = lec_lines(1)[0]
+    for protocol, item in (("nlink", nlink_frames(1)[0]), ("dwm1001-tlv", tlv_responses(1)[0]),
+                           ("dwm1001-shell", line)):
+        dec = make_decoder(protocol)
+        cut = len(item) - 3 if protocol == "dwm1001-shell" else len(item) // 2
+        assert dec.feed(item[:cut]) == [] and dec.discard() == cut
+        assert dec.stats.bytes_skipped == cut and dec.pending == 0
+        assert [f.raw for f in dec.feed(item)] == raws(protocol, [item])  # the next one decodes
 
 
 def _lines_with(text: str, fragment: str) -> int:

@@ -103,6 +103,7 @@ class SerialLink:
         self._flush_next = True  # TLV: flush stale input before the first request
         self._up_since = t0
         self._lost_since: float | None = None
+        self._why_closed = "not open"
         # main-thread fault checks
         self._stalled = False
         self._garbage = False
@@ -149,7 +150,7 @@ class SerialLink:
             while not self._stop.is_set():
                 try:
                     if self.ser is None:
-                        raise _PortError("not open")
+                        raise _PortError(self._why_closed)
                     if self.protocol == "dwm1001-tlv":
                         self._poll()
                     else:
@@ -159,9 +160,8 @@ class SerialLink:
                         break
             self._close_decoder()
         except Exception as e:  # noqa: BLE001 - e.g. the disk is full: the main thread reports it
-            self.error = _one_line(e)
+            self.error = f"{type(e).__name__}: {_one_line(e)}"  # the caller's one error line
             self.ended = "error"
-            self.events.put(f"recording stopped: {type(e).__name__}: {self.error}")
         finally:
             if self.ser is not None:
                 try:
@@ -292,7 +292,14 @@ class SerialLink:
             self.bytes_since_frame = 0
             self._fault(f"{self.port}: device back after {self._up_since - now:.1f} s; recording goes on")
             if self.shell_init:
-                self._init_shell()  # a failure here is one more loss, handled by the loop
+                try:
+                    self._init_shell()
+                except _PortError as e:  # one more loss: the loop reopens it
+                    try:
+                        self.ser.close()
+                    except Exception:  # noqa: BLE001
+                        pass
+                    self.ser, self._why_closed = None, str(e)
             return True
         return False  # stopped while waiting
 
