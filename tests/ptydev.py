@@ -189,6 +189,7 @@ class Device:
     def __init__(self, protocol: str, master: int) -> None:
         self.protocol, self.master = protocol, master
         self.written = 0
+        self.stream = bytearray()  # every byte written after `begin` (what the recorder can read)
         self.ends: list[int] = []
         self.period = 1.0 / RATE_HZ[protocol]
         self._next = time.monotonic()
@@ -199,8 +200,10 @@ class Device:
             return True
         if not read_until(self.master, b"lec\r"):
             return False
-        write_all(self.master, b"dwm> lec\r\n")
-        self.written = 0
+        echo = b"dwm> lec\r\n"
+        write_all(self.master, echo)
+        self.written = len(echo)
+        self.stream += echo
         return True
 
     def _wait_request(self, timeout: float = 30.0) -> bool:
@@ -226,6 +229,7 @@ class Device:
         part = item if upto is None else item[:upto]
         write_all(self.master, part)
         self.written += len(part)
+        self.stream += part
         if upto is None:
             self.ends.append(self.written)
         return True
@@ -247,7 +251,8 @@ def kill_run(tmp: Path, protocol: str, seed: int, n_items: int) -> dict:
     split = rng.randrange(0, len(item[kill_at]))  # 0: killed between two items
     master, slave, port = open_pty()
     out = tmp / f"kill-{protocol}-{seed}.h5"
-    proc = start_recorder(port, out, protocol, "--quiet")
+    raw_out = tmp / f"kill-{protocol}-{seed}.bin"
+    proc = start_recorder(port, out, protocol, "--quiet", "--raw-out", raw_out)
     dev = Device(protocol, master)
     try:
         assert wait_for(lambda: Path(str(out) + ".journal").exists()), proc.stderr and proc.communicate()[1]
@@ -269,9 +274,19 @@ def kill_run(tmp: Path, protocol: str, seed: int, n_items: int) -> dict:
         os.close(master)
         os.close(slave)
     complete = dev.complete(read)
+    raw = raw_out.read_bytes()  # --raw-out: every byte read, written before it is decoded
+    assert raw == bytes(dev.stream[: len(raw)]), "the raw capture is not what was sent"
     rec = replay(str(out) + ".journal", None, {})
     expected = raws(protocol, item[:kill_at])
     got = rec.raw
+    snap = None  # frames in the snapshot left by the kill: a complete contract file, a prefix of the journal
+    if out.exists():
+        from jaxcal.io import hdf5
+
+        hdf5.read(out)
+        snap = replay(out, None, {}).raw
+        assert snap == got[: len(snap)], "the snapshot is not a prefix of the journal"
     return {"protocol": protocol, "seed": seed, "sent": kill_at, "partial": split > 0, "read_complete": complete,
             "recovered": len(got), "prefix": got == expected[: len(got)], "snapshot_at_kill": snapshot,
-            "stderr": err, "out": out}
+            "snapshot_frames": None if snap is None else len(snap), "raw_bytes": len(raw), "read_bytes": read,
+            "max_item": max(map(len, item)), "stderr": err, "out": out}
