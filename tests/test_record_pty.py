@@ -229,31 +229,56 @@ def test_tlv_module_stops_answering_then_never_comes_back(tmp_path):
     assert hdf5.read(out).n_ranges == 150
 
 
-def test_sigterm_and_refusals(tmp_path):
-    """SIGTERM: exit 143, one line, complete file; an existing OUT.h5 or --raw-out is never overwritten."""
-    master, slave, port = open_pty()
+def test_shell_replug_reinit_then_sigterm_and_refusals(tmp_path):
+    """DWM1001 shell with --init: unplugged and plugged back, the recorder reopens the port and sends the
+    shell entry and `lec` again (a module that was reset starts in TLV mode); SIGTERM: exit 143, one line,
+    the file complete. Then an existing OUT.h5 or --raw-out is never written over."""
+    link = tmp_path / "ttyACM0"
+    master, slave, port = open_pty(link)
     out = tmp_path / "t.h5"
-    proc = start_recorder(port, out, "nlink", "--quiet")
-    dev = Device("nlink", master)
-    frames = nlink_frames(60, seed=2)
+    proc = start_recorder(port, out, "dwm1001-shell", "--quiet")
+    err: list[str] = []
+
+    def collect():
+        for line in iter(proc.stderr.readline, ""):
+            err.append(line)
+
+    reader = threading.Thread(target=collect, daemon=True)
+    reader.start()
+    lines = lec_lines(40, seed=2)
     try:
         assert wait_for(lambda: Path(str(out) + ".journal").exists())
-        for f in frames:
-            dev.send(f)
+        dev = Device("dwm1001-shell", master)
+        assert dev.begin()  # the first `lec`
+        for line in lines[:20]:
+            dev.send(line)
+        assert wait_drained(slave)
+        os.close(master)
+        os.close(slave)
+        link.unlink()
+        time.sleep(0.5)
+        master, slave, _ = open_pty(link)
+        dev = Device("dwm1001-shell", master)
+        assert dev.begin()  # `lec` again, after the reconnect
+        for line in lines[20:]:
+            dev.send(line)
         assert wait_drained(slave)
         time.sleep(0.2)
         proc.send_signal(signal.SIGTERM)
-        _, stderr = proc.communicate(timeout=60)
+        proc.wait(timeout=60)
+        reader.join(timeout=10)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
         os.close(master)
         os.close(slave)
-    assert proc.returncode == 143
-    assert stderr.splitlines() == [f"jaxcal: terminated (SIGTERM): recording complete, 60 frames, 180 ranges, "
-                                   f"0 checksum failures, 0 bytes skipped -> {out}"]
-    assert _h5_frames(out) == raws("nlink", frames)
+    stderr = "".join(err)
+    assert proc.returncode == 143, stderr
+    assert len(err) == 3 and ": device lost (" in err[0] and ": device back after" in err[1], stderr
+    assert err[-1] == (f"jaxcal: terminated (SIGTERM): recording complete, 40 frames, 80 ranges, 0 checksum "
+                       f"failures, 0 bytes skipped -> {out}\n")
+    assert _h5_frames(out) == raws("dwm1001-shell", lines)
     before = out.read_bytes()
     assert_one_line_error(run_cli("record", "--port", port, "--protocol", "nlink", "-o", out), "not overwritten")
     assert_one_line_error(run_cli("record", "--port", port, "--protocol", "nlink", "-o", tmp_path / "new.h5",
