@@ -19,7 +19,9 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import h5py
-import pytest
+
+from conftest import assert_one_line_error, run_cli
+from jaxcal.io import hdf5
 from ptydev import (
     Device,
     kill_run,
@@ -33,11 +35,6 @@ from ptydev import (
     wait_drained,
     wait_for,
 )
-
-from conftest import assert_one_line_error, run_cli
-from jaxcal.io import hdf5
-
-pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
 
 # 20 kills: (protocol, items in the stream); the kill item and the part of it written are drawn per seed
 KILLS = [("nlink", 250)] * 8 + [("dwm1001-tlv", 50)] * 6 + [("dwm1001-shell", 50)] * 6
