@@ -56,13 +56,25 @@ def unread(slave: int) -> int:
     return struct.unpack("i", fcntl.ioctl(slave, termios.FIONREAD, b"\0\0\0\0"))[0]
 
 
+def settled_unread(slave: int) -> int:
+    """`unread` once it stops changing. FIONREAD counts the slave's read queue only: bytes just written
+    to the master may still sit in the pty's flip buffer, moved there by a kernel worker a moment later."""
+    last = unread(slave)
+    while True:
+        time.sleep(0.05)
+        now = unread(slave)
+        if now == last:
+            return now
+        last = now
+
+
 def wait_drained(slave: int, timeout: float = 20.0) -> bool:
-    """Wait until the recorder has read everything written so far."""
+    """Wait until the recorder has read everything written so far (0 unread, twice 50 ms apart)."""
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout:
-        if unread(slave) == 0:
+        time.sleep(0.05)
+        if unread(slave) == 0 and settled_unread(slave) == 0:
             return True
-        time.sleep(0.02)
     return False
 
 
@@ -265,8 +277,7 @@ def kill_run(tmp: Path, protocol: str, seed: int, n_items: int) -> dict:
         snapshot = out.exists()
         proc.send_signal(signal.SIGKILL)
         _, err = proc.communicate(timeout=30)
-        time.sleep(0.05)  # the pty's flip buffer reaches the slave's read queue
-        read = dev.written - unread(slave)
+        read = dev.written - settled_unread(slave)  # the recorder is dead: what is left was never read
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -247,8 +247,14 @@ def test_shell_replug_reinit_then_sigterm_and_refusals(tmp_path):
         assert wait_for(lambda: Path(str(out) + ".journal").exists())
         dev = Device("dwm1001-shell", master)
         assert dev.begin()  # the first `lec`
+        # meanwhile a second recorder on the same port (it would take half of the bytes): the port is locked
+        second: list = []
+        t = threading.Thread(target=lambda: second.append(run_cli(
+            "record", "--port", port, "--protocol", "dwm1001-shell", "-o", tmp_path / "second.h5", "--duration", "1")))
+        t.start()
         for line in lines[:20]:
             dev.send(line)
+        t.join(timeout=60)
         assert wait_drained(slave)
         os.close(master)
         os.close(slave)
@@ -282,3 +288,5 @@ def test_shell_replug_reinit_then_sigterm_and_refusals(tmp_path):
                                   "--raw-out", out), "not overwritten")
     assert_one_line_error(run_cli("record", "--replay", out, "-o", out), "is the input")
     assert out.read_bytes() == before and not (tmp_path / "new.h5.journal").exists()
+    assert_one_line_error(second[0], "cannot open serial port")
+    assert "lock" in second[0].stderr and not (tmp_path / "second.h5.journal").exists()

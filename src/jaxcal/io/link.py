@@ -51,10 +51,11 @@ class _PortError(Exception):
 
 
 def open_port(port: str, baud: int):
-    """pyserial port (any URL pyserial knows) with a 50 ms read timeout."""
+    """pyserial port (any URL pyserial knows) with a 50 ms read timeout, locked (flock) so that a second
+    recorder on the same port fails instead of taking half of the bytes."""
     import serial
 
-    return serial.serial_for_url(port, baudrate=baud, timeout=0.05)
+    return serial.serial_for_url(port, baudrate=baud, timeout=0.05, exclusive=True)
 
 
 def _one_line(e: BaseException) -> str:
