@@ -375,8 +375,8 @@ def node_loglik(
     Args:
         cells: (C, 2) [m]. hyp_pos, hyp_logw: (N, H, 2), (N, H) hypotheses of every node.
         hyp_sigma: (N,) range std to use with each neighbour [m]. z_i: (N,) ranges to the
-        neighbours [m]
-            (NaN missing). use_i: (N,) which neighbours contribute. p_out, nlos: see `pair_loglik`.
+            neighbours [m] (NaN missing). use_i: (N,) which neighbours contribute. p_out,
+            nlos: see `pair_loglik`.
 
     Returns:
         (C,) log likelihood (0 where no neighbour contributes).

@@ -80,7 +80,7 @@ class PGPParams(eqx.Module):
 
     Attributes:
         cell_m: grid cell size [m] (0.5: fine enough for sub-metre results, coarse enough to
-        finish).
+            finish).
         extent_m: cap on the grid half-width R [m] (R from `extent_radius`, see `grid.py`).
         margin_m: added to the farthest chain of median ranges from a0 when sizing the grid [m].
         top_k: K of eq. (7), cells carried through the motion update.
@@ -91,10 +91,10 @@ class PGPParams(eqx.Module):
         sigma_r: ranging standard deviation [m] (LOS 1-sigma quantile of the paper's Table I).
         v: expected node speed [m/s] (0: static nodes).
         sigma_v: transition standard deviation of eq. (8) [m per epoch]; > 0 lets the filter
-        recover.
+            recover.
         alpha: smoothing factor of eq. (14) in (0, 1].
         smoothing: "none", "ema" or "median-ema" (median of the last `median_window` estimates,
-        then EMA).
+            then EMA).
         median_window: window of the median in "median-ema" [epochs].
         update_order: "jacobi" or "gauss-seidel" (see the module docstring).
         min_refs: localised neighbours a node must have heard before it counts as localised.
@@ -309,7 +309,7 @@ class PGPInfo(eqx.Module):
         posterior: (N, n, n) final posterior probabilities, `posterior[i, ix, iy]` at
             `(axis_m[ix], axis_m[iy])`.
         snapshot_epochs: (S,) epochs of `snapshots`. snapshots: (S, N, n, n) posteriors at those
-        epochs.
+            epochs.
         log_mass: (K, N) log of the posterior mass after each epoch's update (0 up to rounding).
         raw_track: (K, N, 2) eq. (13) estimates before smoothing [m].
         localised: (N,) whether each node became localised.

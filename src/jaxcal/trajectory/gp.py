@@ -140,8 +140,8 @@ class GPParams(TrajectoryParams):
             for an anchor whose fitted position explains all its ranges clearly worse than the
             start: robust spread of r - |p - a| (`cone_spread`) above this many times nls's
             (0 = never; the fit diverged when f absorbed the geometry).
-        min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s, max_gap_s, time_offset_s,
-        estimate_offset, max_offset_s: as for `ls`.
+        min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s: as for `ls`, and so are
+            max_gap_s, time_offset_s, estimate_offset, max_offset_s.
     """
 
     target: str = "range"
