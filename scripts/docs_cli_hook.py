@@ -25,11 +25,12 @@ def _help_sections() -> str:
     sub = next(a for a in parser._actions if a.dest == "command")  # the subparsers action
     parts = ["## `jaxcal`", "", "```text", parser.format_help().rstrip(), "```", ""]
     for name in COMMANDS:
-        parts += [f"## `jaxcal {name}`", "", "```text", sub.choices[name].format_help().rstrip(), "```", ""]
+        text = sub.choices[name].format_help().rstrip()
+        parts += [f"## `jaxcal {name}`", "", "```text", text, "```", ""]
     return "\n".join(parts)
 
 
-def on_page_markdown(markdown: str, page, config, files) -> str:  # noqa: ARG001 (mkdocs hook signature)
+def on_page_markdown(markdown: str, page, config, files) -> str:  # mkdocs hook signature
     if MARKER not in markdown:
         return markdown
     return markdown.replace(MARKER, _help_sections())

@@ -31,7 +31,10 @@ def main(names: list[str]) -> int:
             t0 = time.perf_counter()
             nb = nbformat.read(path, as_version=4)
             client = nbclient.NotebookClient(
-                nb, timeout=3600, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOKS)}}
+                nb,
+                timeout=3600,
+                kernel_name="python3",
+                resources={"metadata": {"path": str(NOTEBOOKS)}},
             )
             client.execute()
             nbformat.write(nb, path)

@@ -4,7 +4,7 @@
 
 The same as the README's quickstart (`jaxcal calibrate ... --method pgp|cf --config conf1`, then
 `jaxcal report ... --truth data/torgau.h5`): the figure is the report's final-positions panel
-(`positions_conf1.png`, 95 % ellipses from the results' covariances), written at a modest resolution.
+(`positions_conf1.png`, 95 % ellipses from the results' covariances), at a modest resolution.
 """
 
 from __future__ import annotations

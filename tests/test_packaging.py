@@ -1,4 +1,4 @@
-"""The set-up and the docs stay consistent: pinned dependencies, the README's commands, the docs nav.
+"""Set-up and docs stay consistent: pinned dependencies, the README's commands, the docs nav.
 
 Cheap checks without network or a docs build (CI builds the site with `scripts/docs.sh`).
 """
@@ -81,7 +81,8 @@ def test_docs_nav_pages_exist():
 def test_cli_page_documents_every_command():
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location("docs_cli_hook", ROOT / "scripts" / "docs_cli_hook.py")
+    path = ROOT / "scripts" / "docs_cli_hook.py"
+    spec = importlib.util.spec_from_file_location("docs_cli_hook", path)
     hook = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(hook)
     page = hook.on_page_markdown("# CLI\n\n" + hook.MARKER + "\n", None, None, None)
