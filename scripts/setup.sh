@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Create (or reuse) the local virtual environment .venv and install jaxcal with its test extras.
-# Idempotent: reinstalls only when pyproject.toml changed since the last successful install.
+# Create (or reuse) the local virtual environment .venv and install jaxcal with its test extras, at the
+# tested versions of constraints.txt. Idempotent: reinstalls only when pyproject.toml or constraints.txt
+# changed since the last successful install.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=""
@@ -14,9 +15,9 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 stamp=.venv/.jaxcal-installed
-want=$(sha256sum pyproject.toml | cut -d' ' -f1)
+want=$(cat pyproject.toml constraints.txt | sha256sum | cut -d' ' -f1)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   .venv/bin/python -m pip install -q --upgrade pip >/dev/null 2>&1 || true
-  .venv/bin/python -m pip install -q -e ".[test]"
+  .venv/bin/python -m pip install -q -c constraints.txt -e ".[test]"
   echo "$want" > "$stamp"
 fi

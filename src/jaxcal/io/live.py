@@ -15,15 +15,15 @@ second of frame time) and `update(rec, final=True)` at the end. Design:
   method does from the whole recording), and the buffer is fed to it.
 * **New node**: when a closed epoch carries a node the running filter does not know, the filter is
   restarted over all nodes from the buffered epochs (grid re-sized, same frame). The buffer holds the
-  last ``buffer_epochs`` (default 3,000: 5 min of 0.1 s epochs; re-feeding it takes about 2.5 ms per
-  epoch for 5 nodes, during which the recorder's reader thread keeps queueing bytes); when older
+  last ``buffer_epochs`` (default 3,000: 5 min of 0.1 s epochs; while it is re-fed, the recorder's
+  reader thread keeps queueing bytes); when older
   epochs were dropped, their estimates stay those of the previous run (the new node NaN there), and
   the final result can differ from a batch run, which sees every epoch.
 * **Chunks**: at each flush the closed epochs go to `pgp.advance` in chunks of exactly ``chunk``
   epochs (a shorter rest waits for the next flush; at the end it goes one epoch at a time). Default
-  ``chunk = 1``: a single compiled shape (compiling one `advance` shape takes 5-15 s on a 2-core CPU,
-  while one epoch costs about 2.5 ms per call against 2.2 ms inside a chunk of 8, 5 nodes, 0.5 m
-  cells), so there is no second compilation at the end. Chunking does not change the answer
+  ``chunk = 1``: a single compiled shape (compiling a shape costs seconds, far more than the
+  per-call overhead chunks would save: timings on the benchmarks page), so there is no second
+  compilation at the end. Chunking does not change the answer
   (`advance` carries the whole filter state).
 * **Settled**: a node is settled when it is localised and its estimate moved less than one grid cell
   (``cell_m``) over the last ``settle_epochs`` (10) epochs (max distance of those estimates from the

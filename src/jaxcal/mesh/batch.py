@@ -24,7 +24,8 @@ Reported estimate (`estimate`): by default the posterior *mean* of the positions
 the fit itself (the posterior mode, `estimate=map`). In a weak geometry the two differ and the mean is the
 one with the least expected squared error; its covariance comes from the posterior samples of a model
 where the pair, not the single range, is the unit of information (repeated ranges of one pair share its
-systematic error), so it is not the 13-80x overconfident Laplace covariance of the all-ranges fit.
+systematic error), so it is not the overconfident Laplace covariance of the all-ranges fit (which
+treats every range as independent).
 
 Output frame: a0 at the origin, a1 on +x, a2 with y > 0 (CONTRACT 1.1). The covariance
 `sigma^2 (J^T W J)^-1` is computed in gauge-fixed coordinates of that frame (W = IRLS weights

@@ -154,7 +154,7 @@ def _safe_sqrt(d2):
 def top_k(x: Float[Array, " n"], k: int) -> tuple[Float[Array, " k"], Int[Array, " k"]]:
     """`lax.top_k(x, k)` (same values, same indices, ties to the lower index), faster on CPU.
 
-    XLA's CPU top-k is ~100x faster in float32 than in float64. Rounding to float32 is monotonic,
+    XLA's CPU top-k is much faster in float32 than in float64. Rounding to float32 is monotonic,
     so the float64 top k lie among the 2k largest float32 values unless more than k + 1 values
     share the float32 value of the k-th (then the lower indices are kept, as for exact ties); the
     exact float64 top k are then ranked among those 2k candidates.
@@ -375,8 +375,8 @@ def node_loglik(
     Args:
         cells: (C, 2) [m]. hyp_pos, hyp_logw: (N, H, 2), (N, H) hypotheses of every node.
         hyp_sigma: (N,) range std to use with each neighbour [m]. z_i: (N,) ranges to the
-        neighbours [m]
-            (NaN missing). use_i: (N,) which neighbours contribute. p_out, nlos: see `pair_loglik`.
+            neighbours [m] (NaN missing). use_i: (N,) which neighbours contribute. p_out,
+            nlos: see `pair_loglik`.
 
     Returns:
         (C,) log likelihood (0 where no neighbour contributes).

@@ -41,7 +41,8 @@ on a W x W window around its mass (10 m a side) and a1 on its row, with a proven
 on the posterior mass outside, so the answers equal the direct evaluation (`likelihood="direct"`,
 kept as the reference) up to rounding. `run_pgp` drives the scan from the host in chunks
 (`run_chunked`): windowed chunks do not carry the full grid. `_filter` (one scan, used by tuning
-and sweeps) computes the same epochs. Speed: `benchmarks/pgp_speed.py`, README "PGP speed".
+and sweeps) computes the same epochs. Speed: `benchmarks/pgp_speed.py` (figures on the benchmarks
+page of the docs, "PGP speed").
 `start`/`advance` feed epochs as they arrive (live calibration); chunks equal one run.
 """
 
@@ -80,7 +81,7 @@ class PGPParams(eqx.Module):
 
     Attributes:
         cell_m: grid cell size [m] (0.5: fine enough for sub-metre results, coarse enough to
-        finish).
+            finish).
         extent_m: cap on the grid half-width R [m] (R from `extent_radius`, see `grid.py`).
         margin_m: added to the farthest chain of median ranges from a0 when sizing the grid [m].
         top_k: K of eq. (7), cells carried through the motion update.
@@ -91,10 +92,10 @@ class PGPParams(eqx.Module):
         sigma_r: ranging standard deviation [m] (LOS 1-sigma quantile of the paper's Table I).
         v: expected node speed [m/s] (0: static nodes).
         sigma_v: transition standard deviation of eq. (8) [m per epoch]; > 0 lets the filter
-        recover.
+            recover.
         alpha: smoothing factor of eq. (14) in (0, 1].
         smoothing: "none", "ema" or "median-ema" (median of the last `median_window` estimates,
-        then EMA).
+            then EMA).
         median_window: window of the median in "median-ema" [epochs].
         update_order: "jacobi" or "gauss-seidel" (see the module docstring).
         min_refs: localised neighbours a node must have heard before it counts as localised.
@@ -113,14 +114,13 @@ class PGPParams(eqx.Module):
             "sparse" is an alias); "dense" (every pair and hypothesis vmapped, then masked).
         window_m: side of the window of `likelihood="window"` [m] (10 m: covers the 32 most
             probable cells plus the tail of the motion kernel at sigma_v = 0.25 m, and a2's wider
-            posterior (two ranges only): simulated torgau conf2 runs 98 % of its epochs windowed
-            at 10 m and 12 m, ~70 % at 8 m; a window too small for the data only makes more
-            epochs fall back to the full grid, never changes the answer).
+            posterior (two ranges only; how often each size holds: the benchmarks page); a window
+            too small for the data only makes more epochs fall back to the full grid, never
+            changes the answer).
         window_small_m: side of the smaller window tried first [m] (0: none). An epoch runs on it
             when its own proven bound holds for every node, else on the `window_m` window, else
             on the full grid (each fallback re-runs the epoch, answers unchanged). 7 m: the bound
-            needs ~2.6 m of motion-kernel tail (sigma_v = 0.25 m) around the top_k cells;
-            simulated torgau conf1 at 0.25 m holds it in every windowed epoch, at 6 m in 15 %.
+            needs ~2.6 m of motion-kernel tail (sigma_v = 0.25 m) around the top_k cells.
         range_model: the range kernel of eq. (11): "gaussian" (the paper) or "mixture" (NLOS-aware,
             `grid.range_kernel_log`: a LOS Gaussian of std sigma_r plus, with weight
             `nlos_weight`, the Gaussian convolved with a positive exponential of mean
@@ -309,7 +309,7 @@ class PGPInfo(eqx.Module):
         posterior: (N, n, n) final posterior probabilities, `posterior[i, ix, iy]` at
             `(axis_m[ix], axis_m[iy])`.
         snapshot_epochs: (S,) epochs of `snapshots`. snapshots: (S, N, n, n) posteriors at those
-        epochs.
+            epochs.
         log_mass: (K, N) log of the posterior mass after each epoch's update (0 up to rounding).
         raw_track: (K, N, 2) eq. (13) estimates before smoothing [m].
         localised: (N,) whether each node became localised.
@@ -1037,8 +1037,8 @@ def cell_variance(cell_m: float, n: int, anchors: tuple[int, int, int]) -> np.nd
     The grid posterior puts each cell's probability on its centre; read as a histogram density
     (uniform within each cell), its covariance is the centres' covariance plus cell^2 / 12 on each
     axis the node is free in. Without it a node whose posterior sits in one cell reports a variance
-    near 0 although it is only known to within a cell (measured: NEES per coordinate 33-82 on torgau
-    and srvlab before, see README).
+    near 0 although it is only known to within a cell, and its NEES is far above 1 (the NEES with
+    and without this term: the benchmarks page of the docs).
     """
     out = np.zeros((n, 2, 2))
     q = cell_m * cell_m / 12.0

@@ -46,9 +46,9 @@ supported by data. The step is local (a few gradients; sparse inputs such as hym
 points can give a wrong one), so the answer is the option most consistent with the GP's whole
 range field (`range_consistency`: robust spread of r(p_i) - |p_i - a| over the inputs) among the
 candidates' mean, each candidate and the cuboid search's answer; its covariance is the candidates'
-spread plus the posterior variance term below. Measured (mean 3-D error [m], cuboid -> gradient):
-cuhksz 8.00 -> 1.57, hanyang LOS 7.08 -> 2.37, NLOS 3.80 -> 2.28, campus 6.02 -> 6.06, campus with
-drift 13.95 -> 6.44, hymn 5.71 -> 6.69 (two anchors outside its 48 sparse points): not the default.
+spread plus the posterior variance term below. Not the default: it helps where the anchors lie
+outside the covered region and hurts where sparse inputs give wrong local steps (per-dataset errors
+of both searches: the benchmarks page of the docs, `benchmarks/trajectory_calibration.py`).
 
 Covariance of an estimate: the sample covariance of the top-k samples of the last round plus the
 GP's posterior variance of the range at the estimate times the identity (for `inv-log`, mapped to
@@ -140,8 +140,8 @@ class GPParams(TrajectoryParams):
             for an anchor whose fitted position explains all its ranges clearly worse than the
             start: robust spread of r - |p - a| (`cone_spread`) above this many times nls's
             (0 = never; the fit diverged when f absorbed the geometry).
-        min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s, max_gap_s, time_offset_s,
-        estimate_offset, max_offset_s: as for `ls`.
+        min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s: as for `ls`, and so are
+            max_gap_s, time_offset_s, estimate_offset, max_offset_s.
     """
 
     target: str = "range"

@@ -33,8 +33,8 @@ class NLSParams(TrajectoryParams):
         min_scale_m: floor of the automatic scale [m].
         bias: estimate a constant range bias per anchor.
         n_irls: reweighting rounds. max_steps: Levenberg-Marquardt steps per round.
-        min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s, max_gap_s, time_offset_s, estimate_offset,
-        max_offset_s: as for `ls`.
+        min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s: as for `ls`, and so are
+            max_gap_s, time_offset_s, estimate_offset, max_offset_s.
     """
 
     loss: str = "cauchy"
