@@ -113,33 +113,21 @@ def read_store(path: str):
 
 
 def _write_store(path, attrs, runs, metrics, done) -> None:
-    """Whole file to a temporary name, then `os.replace` (atomic on POSIX)."""
-    import os
-    import tempfile
-    from pathlib import Path
-
+    """Whole file to a temporary name, then `os.replace` (`jaxcal.io.atomic`)."""
     import h5py
 
-    out = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=str(out.parent), prefix=out.name, suffix=".tmp")
-    os.close(fd)
-    try:
-        with h5py.File(tmp, "w") as f:
-            for k, v in attrs.items():
-                f.attrs[k] = v
-            g = f.create_group("runs")
-            for k, v in runs.items():
-                g.create_dataset(k, data=v.astype("S") if v.dtype.kind == "U" else v)
-            m = f.create_group("metrics")
-            for k, v in metrics.items():
-                m.create_dataset(k, data=v)
-            f.create_dataset("done", data=done)
-        with open(tmp, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, out)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    from jaxcal.io.atomic import atomic_path
+
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        for k, v in attrs.items():
+            f.attrs[k] = v
+        g = f.create_group("runs")
+        for k, v in runs.items():
+            g.create_dataset(k, data=v.astype("S") if v.dtype.kind == "U" else v)
+        m = f.create_group("metrics")
+        for k, v in metrics.items():
+            m.create_dataset(k, data=v)
+        f.create_dataset("done", data=done)
 
 
 def run(args) -> int:

@@ -44,14 +44,12 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     import dataclasses
     import json
-    import os
-    import tempfile
-    from pathlib import Path
 
     import jax
 
     from jaxcal.commands._common import _clean, load, print_json
     from jaxcal.errors import JaxcalError
+    from jaxcal.io.atomic import atomic_write_text
     from jaxcal.params import parse_set
 
     if args.epochs < 1 or not args.cell > 0 or args.max_steps < 1 or args.tau_temp < 0:
@@ -85,11 +83,7 @@ def run(args) -> int:
             **{f.name: getattr(res, f.name) for f in dataclasses.fields(res) if f.name != "params"},
         },
     }
-    out = Path(args.output)
-    fd, tmp = tempfile.mkstemp(dir=out.parent if str(out.parent) else ".", suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(_clean(doc), f, indent=2)
-    os.replace(tmp, out)
+    atomic_write_text(out, json.dumps(_clean(doc), indent=2))
     if args.json:
         print_json(doc)
     else:
