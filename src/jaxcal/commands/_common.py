@@ -187,3 +187,62 @@ def emit_json(args, obj: dict) -> None:
     """Print the JSON summary when --json (even with --quiet: asked for explicitly)."""
     if getattr(args, "json", False):
         print_json(obj)
+
+
+# ------------------------------------------------------------------ --config: a stored name or three node ids
+
+CONFIG_HELP = (
+    "mesh frame: a stored configuration's name (configs/NAME, e.g. conf1) or three node ids A0,A1,A2 "
+    "(a0 at the origin, a1 on +x, a2 at y > 0); default: configs/default or the first three nodes"
+)
+
+
+def parse_config(text: str | None) -> str | tuple[str, str, str] | None:
+    """`--config` as given: None, a configuration name, or three distinct node ids (comma-separated)."""
+    if text is None:
+        return None
+    t = text.strip()
+    if not t:
+        raise JaxcalError("--config is empty (give a configuration name or three node ids A0,A1,A2)")
+    if "," not in t:
+        return t
+    ids = tuple(s.strip() for s in t.split(","))
+    if len(ids) != 3 or not all(ids) or len(set(ids)) != 3:
+        raise JaxcalError(f"--config: expected a configuration name or three distinct node ids A0,A1,A2, got {text!r}")
+    return ids  # type: ignore[return-value]
+
+
+def resolve_config(ds, text: str | None):
+    """(dataset, configuration name) for `--config TEXT` on a mesh dataset.
+
+    A stored name is checked against `configs/`; three node ids (or, when they are not ids, three node
+    indices) become a configuration of that name added to the returned dataset, so that every method,
+    which takes a configuration name, accepts them.
+    """
+    import dataclasses
+
+    cfg = parse_config(text)
+    if cfg is None or not hasattr(ds, "node_ids"):
+        return ds, None if cfg is None else text
+    if isinstance(cfg, str):
+        table = dict(ds.configs)
+        if cfg not in table:
+            known = ", ".join(table) or "none stored"
+            raise JaxcalError(
+                f"--config {cfg}: no such configuration in {ds.name} (known: {known}; or give three node ids A0,A1,A2)"
+            )
+        return ds, cfg
+    ids = list(ds.node_ids)
+    missing = [c for c in cfg if c not in ids]
+    if not missing:
+        idx = tuple(ids.index(c) for c in cfg)
+    elif all(c.isdigit() for c in cfg) and all(int(c) < len(ids) for c in cfg):
+        idx = tuple(int(c) for c in cfg)
+    else:
+        raise JaxcalError(
+            f"--config {','.join(cfg)}: unknown node id(s) {', '.join(missing)} (nodes: {', '.join(ids)})"
+        )
+    name = ",".join(cfg)
+    configs = {k: v for k, v in ds.configs}
+    configs[name] = idx
+    return dataclasses.replace(ds, configs=configs), name

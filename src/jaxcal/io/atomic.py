@@ -4,9 +4,8 @@ Every file jaxcal writes goes through `atomic_path`, so that
 
 * a reader (or a crash, Ctrl-C, SIGTERM) sees either the old file or the complete new one, never a
   torn one: the temporary file is renamed into place only after it was written, closed and fsynced;
-* the file gets the permissions an ordinary `open(path, "w")` would give: `0o666 & ~umask` for a new
-  file (0644 under umask 022; `tempfile.mkstemp` alone makes 0600), the old file's mode when one is
-  replaced;
+* the file gets the permissions the umask gives, `0o666 & ~umask` (0644 under umask 022;
+  `tempfile.mkstemp` alone makes 0600, which nobody else could read), also when it replaces a file;
 * no temporary file outlives the process: live temporaries are registered, and
   `discard_temporaries()` (called by the command line's signal handler before it exits) removes them.
   The rename and the removal share one lock, so an interrupt either lands before the rename (the old
@@ -21,7 +20,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import stat
 import tempfile
 import threading
 from collections.abc import Iterator
@@ -50,16 +48,6 @@ def umask() -> int:
     return mask
 
 
-def _mode_for(path: Path) -> int:
-    try:
-        st = os.stat(path)
-        if stat.S_ISREG(st.st_mode):
-            return stat.S_IMODE(st.st_mode)
-    except OSError:
-        pass
-    return 0o666 & ~umask()
-
-
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, fsync: bool = True) -> Iterator[Path]:
     """Yield a temporary path next to `path`; on success it replaces `path`, on any exception it is removed.
@@ -76,7 +64,7 @@ def atomic_path(path: str | os.PathLike, fsync: bool = True) -> Iterator[Path]:
     _LIVE.add(tmp)
     try:
         yield Path(tmp)
-        os.chmod(tmp, _mode_for(path))
+        os.chmod(tmp, 0o666 & ~umask())
         if fsync:
             fd = os.open(tmp, os.O_RDONLY)
             try:
