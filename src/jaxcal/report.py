@@ -325,7 +325,10 @@ class _Page:
 
     def figure(self, fig, name: str, caption: str) -> None:
         fname = f"{_slug(name)}.png"
-        fig.savefig(self.out / fname, dpi=self.dpi)
+        from jaxcal.io.atomic import atomic_path
+
+        with atomic_path(self.out / fname) as tmp:  # an interrupted report leaves no torn PNG
+            fig.savefig(tmp, dpi=self.dpi, format="png")
         self.figures.append(fname)
         self.parts.append(
             f'<figure><img src="{html.escape(fname)}" alt="{html.escape(caption)}">'
@@ -821,7 +824,9 @@ def write_report(
         + "\n".join(page.parts)
         + "</body></html>\n"
     )
-    (out / "report.json").write_text(json.dumps(_clean(numbers), indent=1, allow_nan=False))
+    from jaxcal.io.atomic import atomic_write_text
+
+    atomic_write_text(out / "report.json", json.dumps(_clean(numbers), indent=1, allow_nan=False))
     index = out / "index.html"
-    index.write_text(doc, encoding="utf-8")
+    atomic_write_text(index, doc)
     return index

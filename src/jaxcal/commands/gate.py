@@ -54,7 +54,9 @@ def add_arguments(p) -> None:
         metavar="OUT.h5",
         help="write ranked candidates (result file)",
     )
-    p.add_argument("--json", action="store_true", help="print one JSON summary object")
+    from jaxcal.commands._common import add_output_flags
+
+    add_output_flags(p, "print one JSON summary object")
     p.add_argument("--top-k", type=int, default=5, help="candidates per query (default 5)")
     p.add_argument(
         "--max-anchors",
@@ -350,7 +352,13 @@ def run(args) -> int:
     if args.max_anchors is not None and args.max_anchors < 0:
         raise JaxcalError(f"--max-anchors must be >= 0, got {args.max_anchors}")
 
+    from jaxcal.commands._common import check_inputs, check_output_path
+
+    inputs = [args.db, args.queries, args.anchors]
+    check_inputs(inputs)
+    out = check_output_path(args.output, inputs) if args.output else None
     if args.simulate is not None:
+        check_output_path(args.simulate, folder=True)
         if args.db or args.queries or args.anchors:
             raise JaxcalError(
                 "--simulate writes its own DB, queries and anchors; give no input files"
@@ -461,9 +469,10 @@ def run(args) -> int:
     if args.output:
         _write_output(args.output, q_ids, best, cand, settings, q_file, args.top_k)
         summary["output"] = args.output
+        summary["overwrote"] = out.existed
     if args.json:
         print_json(summary)
-    else:
+    elif not args.quiet:
         line = (
             f"gate: {len(q_ids)} queries against {kf_pos.shape[0]} keyframes, "
             f"{summary['mean_anchors_heard']:.2f} anchors heard, "
@@ -472,7 +481,7 @@ def run(args) -> int:
         if truth is not None:
             g, f = summary["success_gated"], summary["success_full"]
             line += f"; success gated {g:.1%} vs full {f:.1%}"
-        print(line + (f" -> {args.output}" if args.output else ""))
+        print(line + (f" -> {args.output}{out.note()}" if args.output else ""))
     return 0
 
 

@@ -56,9 +56,9 @@ def add_arguments(p) -> None:
         choices=["best", "facet"],
         help="other swept parameters (sigma_v, ...): best value per cell, or one surface each",
     )
-    p.add_argument(
-        "--json", action="store_true", help="print the report's numbers as one JSON object"
-    )
+    from jaxcal.commands._common import add_output_flags
+
+    add_output_flags(p, "print the report's numbers as one JSON object")
 
 
 def is_sweep_file(path: str) -> bool:
@@ -115,7 +115,11 @@ def run(args) -> int:
     from jaxcal.errors import JaxcalError
     from jaxcal.report import parse_posteriors, write_report
 
+    from jaxcal.commands._common import check_inputs, check_output_path
+
     t0 = time.perf_counter()
+    check_inputs(args.files, args.truth)
+    check_output_path(args.output, folder=True)
     spec = parse_posteriors(args.posteriors)
     sweeps, result_paths = [], []
     for path in args.files:
@@ -134,6 +138,6 @@ def run(args) -> int:
     if args.json:
         numbers = json.loads((index.parent / "report.json").read_text())
         print_json({"index": str(index), "seconds": seconds, **numbers})
-    else:
+    elif not args.quiet:
         print(f"report in {index} ({seconds:.1f} s)")
     return 0
