@@ -41,6 +41,8 @@ def identify(path: str) -> str:
         except OSError as e:
             raise FormatError(f"{path}: not a readable HDF5 file ({str(e).splitlines()[0]})") from None
         raise FormatError(f"{path}: missing root attribute 'jaxcal_format' (an HDF5 file, but not a jaxcal file)")
+    if p.suffix.lower() in (".h5", ".hdf5", ".hdf"):
+        raise FormatError(f"{path}: not a readable HDF5 file (no HDF5 signature)")
     from jaxcal.io.recorder import JOURNAL_MAGIC
 
     if head.startswith(JOURNAL_MAGIC[:8]):

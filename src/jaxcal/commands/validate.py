@@ -51,7 +51,8 @@ def run(args) -> int:
         what = "JSON summary written by jaxcal"
     status = "warning" if warnings else "valid"
     emit_json(args, {"file": args.file, "format": kind, "status": status, "warnings": warnings, **extra})
-    say(args, f"{args.file}: valid {what}" if not warnings else f"{args.file}: {what}, with warnings:")
+    n = len(warnings)
+    say(args, f"{args.file}: valid {what}" + (f", with {n} warning{'s' * (n > 1)}:" if n else ""))
     if not args.json and not args.quiet:
         for w in warnings:
             print(f"  warning: {w}")
