@@ -64,7 +64,15 @@ def run(args) -> int:
     params.update(parse_set(args.set))
     ds, config = resolve_config(ds, args.config)
     t0 = time.perf_counter()
-    result = calibrate(ds, args.method, params=params, config=config)
+    stages = _stages(args.method, params)
+    if stages:  # a stage-level bar (tqdm on a terminal; silent under --quiet, --json or a pipe)
+        from jaxcal.progress import progress_bar
+
+        fn = get_method("mesh" if hasattr(ds, "node_ids") else "trajectory", args.method)
+        with progress_bar(stages, args.method, "stage", enabled=not (args.quiet or args.json)) as bar:
+            result = fn(ds, params=params, config=config, progress=bar.update)
+    else:
+        result = calibrate(ds, args.method, params=params, config=config)
     elapsed = time.perf_counter() - t0
     hdf5.write(out.path, result)
     import numpy as np
@@ -74,4 +82,20 @@ def run(args) -> int:
                      "estimated": n_est, "nodes": len(result.ids), "seconds": elapsed, "overwrote": out.existed})
     say(args, f"{args.method}: {n_est}/{len(result.ids)} positions estimated in {elapsed:.2f} s -> {args.output}"
         f"{out.note()}")
+    return 0
+
+
+def _stages(method: str, params: dict) -> int:
+    """Progress units of a method that reports stages (batch, gp); 0 for the others."""
+    from jaxcal.params import with_overrides
+
+    if method == "batch":
+        from jaxcal.mesh.batch import BatchParams, stage_count
+
+        return stage_count(with_overrides(BatchParams(), params))
+    if method == "gp":
+        from jaxcal.trajectory.gp import GPParams
+
+        p = with_overrides(GPParams(), params)
+        return 1 if p.mean == "anchor" else p.stages
     return 0

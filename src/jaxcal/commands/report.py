@@ -131,9 +131,16 @@ def run(args) -> int:
     results = [load(path, ("result",)) for path in result_paths]
     if results and truth is None:
         raise JaxcalError("calibration results need --truth DATASET.h5")
-    index = write_report(
-        results, truth, args.output, labels=args.label, posteriors=spec, sweeps=sweeps
-    )
+    from jaxcal.data import MeshDataset
+    from jaxcal.progress import progress_bar
+    from jaxcal.report import report_sections
+
+    total = report_sections(truth is not None, len(results), isinstance(truth, MeshDataset), len(sweeps))
+    with progress_bar(total, "report", "section", enabled=not (args.quiet or args.json)) as bar:
+        index = write_report(
+            results, truth, args.output, labels=args.label, posteriors=spec, sweeps=sweeps,
+            progress=bar.update,
+        )
     seconds = time.perf_counter() - t0
     if args.json:
         numbers = json.loads((index.parent / "report.json").read_text())
