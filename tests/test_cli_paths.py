@@ -169,3 +169,20 @@ def test_every_command_takes_json_and_quiet():
     for name in COMMANDS:
         flags = {o for a in sub.choices[name]._actions for o in a.option_strings}
         assert {"--json", "--quiet"} <= flags, name
+
+
+def test_resolve_config_in_process():
+    from jaxcal.commands._common import parse_config, resolve_config
+    from jaxcal.errors import JaxcalError
+
+    ds = small_mesh(configs={"conf1": (0, 1, 2)})
+    assert resolve_config(ds, None) == (ds, None)
+    assert resolve_config(ds, "conf1")[1] == "conf1"
+    d2, name = resolve_config(ds, " n3, n1 ,n0")
+    assert name == "n3,n1,n0" and d2.config(name) == (3, 1, 0) and dict(d2.configs)["conf1"] == (0, 1, 2)
+    assert resolve_config(ds, "2,0,1")[0].config("2,0,1") == (2, 0, 1)  # indices when they are not ids
+    assert parse_config("a,b,c") == ("a", "b", "c")
+    for bad, msg in (("nosuch", "known: conf1"), ("n0,n1", "three distinct"), ("n0,n1,n1", "three distinct"),
+                     ("", "empty"), ("n0,n1,x9", "unknown node id")):
+        with pytest.raises(JaxcalError, match=msg):
+            resolve_config(ds, bad)

@@ -114,6 +114,8 @@ def _take_signals() -> None:
     sigs = {signal.SIGINT, signal.SIGTERM}
     if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
         return
+    import jaxcal.io.atomic  # noqa: F401 - imported now, not by the watcher while the main thread imports
+
     signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
 
     def watch():

@@ -146,7 +146,7 @@ def check_output_path(path, inputs=(), *, folder: bool = False) -> OutputPath:
             base = base.parent
         if not base.is_dir():
             raise JaxcalError(f"{text}: {base} is not a folder")
-        _probe_folder(text, base if base != p else p)
+        _probe_folder(text, base)
         return OutputPath(p, False)
     if p.is_dir():
         raise JaxcalError(f"{text}: is a folder (give a file name, e.g. {p / 'out.h5'})")
