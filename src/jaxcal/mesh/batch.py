@@ -796,7 +796,6 @@ def _active_nodes(i: np.ndarray, j: np.ndarray, n: int, a0: int) -> np.ndarray:
     return seen
 
 
-@in_float64
 def stage_count(params: BatchParams) -> int:
     """Stages `solve` reports to its `progress` callback: multi-start fit, relocation, offset choice
     (bias=auto), all-ranges refinement (summary=all), covariance, posterior sampler (estimate=mean)."""
@@ -804,6 +803,7 @@ def stage_count(params: BatchParams) -> int:
     return 3 + (p.bias == "auto") + (p.summary == "all") + (p.estimate == "mean")
 
 
+@in_float64
 def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParams | None = None,
           node_ids: tuple[str, ...] | None = None,
           extra_starts: np.ndarray | None = None,
