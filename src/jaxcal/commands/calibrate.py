@@ -47,9 +47,8 @@ def list_params(args) -> int:
 def run(args) -> int:
     import time
 
-    from jaxcal.commands._common import check_output_path, emit_json, load, resolve_config, say
+    from jaxcal.commands._common import check_inputs, check_output_path, emit_json, load, resolve_config, say
     from jaxcal.errors import JaxcalError
-    from jaxcal.io import hdf5
     from jaxcal.methods import calibrate, get_method
     from jaxcal.params import load_params_json, parse_set
 
@@ -57,8 +56,11 @@ def run(args) -> int:
         return list_params(args)
     if args.dataset is None or args.output is None:
         raise JaxcalError("calibrate needs DATASET.h5 and -o RESULT.h5 (or --list-params)")
+    check_inputs(args.dataset, args.params)
+    out = check_output_path(args.output, [args.dataset, args.params])  # paths first: no import, no read
+    from jaxcal.io import hdf5
+
     ds = load(args.dataset, ("mesh", "trajectory"))
-    out = check_output_path(args.output, [args.dataset, args.params])
     get_method("mesh" if hasattr(ds, "node_ids") else "trajectory", args.method)  # unknown method: now
     params = load_params_json(args.params) if args.params else {}
     params.update(parse_set(args.set))

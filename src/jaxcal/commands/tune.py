@@ -56,8 +56,8 @@ def run(args) -> int:
 
     if args.epochs < 1 or not args.cell > 0 or args.max_steps < 1 or args.tau_temp < 0:
         raise JaxcalError("--epochs and --max-steps must be >= 1, --cell > 0, --tau-temp >= 0")
-    ds = load(args.dataset, ("mesh",))
     out = check_output_path(args.output, [args.dataset])
+    ds = load(args.dataset, ("mesh",))
     ds, config = resolve_config(ds, args.config)
     user = parse_set(args.set)
     if "cell_m" in user:
