@@ -6,6 +6,15 @@ no heavy imports at module level, so `jaxcal --help` stays fast) and `run(args) 
 Errors: bad input (`JaxcalError`, a missing file, a bad value) prints one line `jaxcal: error: ...` on
 stderr and exits 2; an unexpected failure prints one line and exits 1. Set `JAXCAL_DEBUG=1` for the
 traceback.
+
+Signals: SIGINT (Ctrl-C) and SIGTERM end any command at any moment with one line and exit status 130
+(143). They are blocked in every thread and taken by one watcher thread (`signal.sigwait`), which removes
+the live temporary files of `jaxcal.io.atomic` and ends the process with `os._exit`. Raising
+KeyboardInterrupt in the main thread instead is not safe with JAX: the signal may land while XLA runs or
+compiles on its own threads (Python runs its handler only between bytecodes of the main thread, late or,
+inside a callback, not at all), and the interpreter then tears down modules while those threads still
+run, which crashed with a segmentation fault (exit 139). `record --port` keeps Ctrl-C and SIGTERM as its
+clean "stop recording" (see `jaxcal.io.recorder`).
 """
 
 from __future__ import annotations
@@ -64,8 +73,79 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(text.split())
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM in a command that handles interruption itself (`record --port`)."""
+
+
+def _exit_on_signal(signum: int) -> None:
+    """Remove temporaries, flush what was printed, one line, then end the process at once."""
+    import signal
+    import threading
+
+    from jaxcal.io.atomic import discard_temporaries
+
+    discard_temporaries()
+
+    def flush():
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:  # noqa: BLE001 - a closed pipe must not stop the exit
+                pass
+
+    t = threading.Thread(target=flush, daemon=True)  # a stream held by a blocked writer: give up after 1 s
+    t.start()
+    t.join(1.0)
+    if signum == signal.SIGINT:
+        line, code = b"jaxcal: interrupted\n", 130
+    else:
+        line, code = b"jaxcal: terminated (SIGTERM)\n", 143
+    try:
+        os.write(2, line)
+    finally:
+        os._exit(code)
+
+
+def _take_signals() -> None:
+    """Block SIGINT and SIGTERM in this and every later thread; one watcher thread takes them."""
+    import signal
+    import threading
+
+    sigs = {signal.SIGINT, signal.SIGTERM}
+    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+        return
+    import jaxcal.io.atomic  # noqa: F401 - imported now, not by the watcher while the main thread imports
+
+    signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+
+    def watch():
+        _exit_on_signal(signal.sigwait(sigs))
+
+    threading.Thread(target=watch, name="jaxcal-signals", daemon=True).start()
+
+
+def _raise_on_sigterm() -> None:
+    import signal
+
+    def on_term(signum, frame):
+        raise Terminated()
+
+    signal.signal(signal.SIGTERM, on_term)
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the `jaxcal` console script."""
+    """Entry point of the `jaxcal` console script.
+
+    With `argv` None (the console script, `python -m jaxcal.cli`) the process's signals are taken as the
+    module docstring says; an in-process call with a list (a notebook, a test) leaves them alone, and
+    Ctrl-C there is a KeyboardInterrupt as usual (exit status 130).
+    """
+    if argv is None:  # first thing: a signal during the imports below must not print a traceback
+        words = sys.argv[1:]
+        if words[:1] == ["record"] and any(w == "--port" or w.startswith("--port=") for w in words):
+            _raise_on_sigterm()  # the recorder stops cleanly on Ctrl-C / SIGTERM and writes the file
+        else:
+            _take_signals()
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "_module", None) is None:
@@ -77,6 +157,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         rc = args._module.run(args)
         return int(rc or 0)
+    except Terminated:
+        sys.stderr.write("jaxcal: terminated (SIGTERM)\n")
+        return 143
     except KeyboardInterrupt:
         sys.stderr.write("jaxcal: interrupted\n")
         return 130

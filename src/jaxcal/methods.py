@@ -28,7 +28,32 @@ TRAJECTORY_METHODS: dict[str, str] = {
     "ls": "jaxcal.trajectory.ls:calibrate",
 }
 
-__all__ = ["MESH_METHODS", "TRAJECTORY_METHODS", "get_method", "calibrate"]
+# method -> "module:Class" of its parameter defaults (for `--list-params`); pgp+batch takes both
+# (a key of both goes to both stages; `pgp.KEY` / `batch.KEY` picks one).
+METHOD_PARAMS: dict[str, tuple[str, ...]] = {
+    "cf": ("jaxcal.mesh.closed_form:ClosedFormParams",),
+    "pgp": ("jaxcal.mesh.pgp:PGPParams",),
+    "parametric": ("jaxcal.mesh.pgp:PGPParams",),
+    "batch": ("jaxcal.mesh.batch:BatchParams",),
+    "pgp+batch": ("jaxcal.mesh.pgp:PGPParams", "jaxcal.mesh.batch:BatchParams"),
+    "gp": ("jaxcal.trajectory.gp:GPParams",),
+    "nls": ("jaxcal.trajectory.nls:NLSParams",),
+    "ls": ("jaxcal.trajectory.ls:LSParams",),
+}
+
+__all__ = ["MESH_METHODS", "TRAJECTORY_METHODS", "METHOD_PARAMS", "get_method", "calibrate", "param_defaults"]
+
+
+def param_defaults(name: str) -> list:
+    """Default parameter objects of method `name` (one per stage; see `METHOD_PARAMS`)."""
+    if name not in METHOD_PARAMS:
+        known = ", ".join(sorted(METHOD_PARAMS))
+        raise JaxcalError(f"unknown method {name!r} (known: {known})")
+    out = []
+    for ref in METHOD_PARAMS[name]:
+        module, _, cls = ref.partition(":")
+        out.append(getattr(importlib.import_module(module), cls)())
+    return out
 
 
 def get_method(kind: str, name: str):

@@ -105,3 +105,103 @@ def as_dict(params: Any) -> dict[str, Any]:
             v = v.tolist()
         out[f.name] = v
     return out
+
+
+def _attribute_docs(cls: type) -> dict[str, tuple[str, int]]:
+    """Field name -> (text, names sharing it) from the `Attributes:` sections of `cls` and its bases (Google style).
+
+    An entry is `name: text` (continuation lines indented deeper); `a, b: text` documents several
+    fields at once; several `name: text` entries may share one line ("n_train: ...; n_bins: ...").
+    """
+    import inspect
+    import re
+
+    out: dict[str, tuple[str, int]] = {}
+    for klass in reversed(cls.__mro__):
+        doc = inspect.getdoc(klass) or ""
+        if klass.__doc__ is None or "Attributes:" not in doc:
+            continue
+        body = doc.split("Attributes:", 1)[1].splitlines()
+        entries: list[tuple[list[str], str]] = []
+        base = None
+        for line in body:
+            if not line.strip():
+                continue
+            indent = len(line) - len(line.lstrip())
+            if base is None:
+                base = indent
+            if indent < base:
+                break
+            m = re.match(r"^([A-Za-z_][\w]*(?:\s*,\s*[A-Za-z_][\w]*)*)\s*:\s*(.*)$", line.strip())
+            if indent == base and m:
+                entries.append(([n.strip() for n in m.group(1).split(",")], m.group(2)))
+            elif entries:
+                names, text = entries[-1]
+                entries[-1] = (names, text + " " + line.strip())
+        for names, text in entries:
+            # "a: x. b: y" on one line: split where another documented-looking name follows
+            parts = re.split(r"(?<=[.;])\s+([A-Za-z_]\w*(?:\s*,\s*[A-Za-z_]\w*)*):\s", text)
+            pieces = [(names, parts[0])]
+            for i in range(1, len(parts) - 1, 2):
+                pieces.append(([n.strip() for n in parts[i].split(",")], parts[i + 1]))
+            for ns, t in pieces:
+                t = " ".join(t.split())
+                for n in ns:
+                    if n in out and t.lower().startswith(("as for", "as in", "see ")):
+                        continue  # a subclass pointing back at the base's text: keep the base's
+                    out[n] = (t, len(ns))
+    return out
+
+
+def describe(defaults: Any) -> list[dict[str, Any]]:
+    """Each parameter of a params dataclass / eqx.Module instance: name, default, unit, one-line meaning.
+
+    Generated from the fields (defaults) and the class docstring's `Attributes:` section (meaning; the
+    unit is the first `[...]` of the text, e.g. `[m]`).
+    """
+    import re
+
+    docs = _attribute_docs(type(defaults))
+    rows = []
+    for f in dataclasses.fields(defaults):
+        text, shared = docs.get(f.name, ("", 1))
+        unit = _unit_of_name(f.name)
+        bracket = re.search(r"\[([^\]]+)\]", text)
+        if not unit and bracket and shared == 1:
+            unit = bracket.group(1)
+        meaning = re.sub(r"\s*\[[^\]]+\]", "", _first_sentence(text)).strip()
+        v = getattr(defaults, f.name)
+        if hasattr(v, "tolist"):
+            v = v.tolist()
+        rows.append({"name": f.name, "default": v, "unit": unit, "meaning": meaning})
+    return rows
+
+
+_UNITS = (("_m2", "m^2"), ("_m", "m"), ("_s", "s"), ("_hz", "Hz"), ("_dbm", "dBm"), ("_deg", "deg"))
+
+
+def _unit_of_name(name: str) -> str:
+    for suffix, unit in _UNITS:
+        if name.endswith(suffix):
+            return unit
+    return ""
+
+
+def _first_sentence(text: str, width: int = 110) -> str:
+    """The text up to the first '. ' outside parentheses, cut to `width` characters at a word."""
+    depth, end = 0, len(text)
+    for i, ch in enumerate(text):
+        if ch in "([":
+            depth += 1
+        elif ch in ")]":
+            depth = max(depth - 1, 0)
+        elif ch in ".;" and depth == 0 and (i + 1 == len(text) or text[i + 1] == " "):
+            word = text[:i].rsplit(" ", 1)[-1].lower().lstrip("(")
+            if ch == "." and word in ("eq", "eqs", "e.g", "i.e", "cf", "vs", "fig", "approx", "sec"):
+                continue  # an abbreviation, not the end of the sentence
+            end = i
+            break
+    out = text[:end].strip()
+    if len(out) > width:
+        out = out[: width - 3].rsplit(" ", 1)[0].rstrip(",;:(") + "..."
+    return out

@@ -34,7 +34,7 @@ import html
 import json
 import math
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -325,7 +325,10 @@ class _Page:
 
     def figure(self, fig, name: str, caption: str) -> None:
         fname = f"{_slug(name)}.png"
-        fig.savefig(self.out / fname, dpi=self.dpi)
+        from jaxcal.io.atomic import atomic_path
+
+        with atomic_path(self.out / fname) as tmp:  # an interrupted report leaves no torn PNG
+            fig.savefig(tmp, dpi=self.dpi, format="png")
         self.figures.append(fname)
         self.parts.append(
             f'<figure><img src="{html.escape(fname)}" alt="{html.escape(caption)}">'
@@ -731,6 +734,11 @@ figure{margin:1.2em 0}img{max-width:100%;border:1px solid #eee}figcaption{font-s
 details{margin:.5em 0}"""
 
 
+def report_sections(has_truth: bool, n_results: int, mesh: bool, n_sweeps: int) -> int:
+    """Sections `write_report` reports to its `progress` callback."""
+    return int(has_truth) + (0 if not n_results else (2 if mesh else 1)) + int(n_sweeps > 0)
+
+
 def write_report(
     results: Sequence[Result],
     truth_dataset: MeshDataset | TrajectoryDataset | None,
@@ -741,6 +749,7 @@ def write_report(
     sweeps: Sequence[Mapping[str, Any]] = (),
     title: str | None = None,
     dpi: int = 110,
+    progress: Callable[[int], None] | None = None,
 ) -> Path:
     """Write PNG figures, `index.html` and `report.json` for results against a dataset's truth.
 
@@ -754,6 +763,7 @@ def write_report(
             optional `metric` / `label` when the values are another metric, and the counts and
             `best_others` of `sweep_surfaces` (shown in the table).
         title: page title. dpi: PNG resolution.
+        progress: called with 1 after each section (`report_sections(...)` calls in all).
 
     Returns:
         Path of `index.html`.
@@ -789,18 +799,24 @@ def write_report(
     out.mkdir(parents=True, exist_ok=True)
     page = _Page(out, dpi)
     numbers: dict[str, Any] = {"dataset": None if ds is None else ds.name, "groups": {}}
+    done = progress or (lambda k: None)
     if ds is not None:
         _ranging_section(page, ds, numbers)
+        done(1)
     if groups:
         if mesh:
             _mesh_section(page, ds, groups, evals, numbers)
+            done(1)
             _posterior_section(page, ds, groups, evals, posteriors, numbers)
+            done(1)
         else:
             _trajectory_section(page, ds, groups, evals, numbers)
+            done(1)
     for lab, ev in evals.items():
         numbers["groups"][lab] = {k: v for k, v in ev.items() if k != "ecdf"}
     if sweeps:
         _sweep_section(page, sweeps, numbers)
+        done(1)
     numbers["figures"] = page.figures
     head = title or f"jaxcal report: {ds.name if ds is not None else 'parameter sweeps'}"
     if ds is None:
@@ -821,7 +837,9 @@ def write_report(
         + "\n".join(page.parts)
         + "</body></html>\n"
     )
-    (out / "report.json").write_text(json.dumps(_clean(numbers), indent=1, allow_nan=False))
+    from jaxcal.io.atomic import atomic_write_text
+
+    atomic_write_text(out / "report.json", json.dumps(_clean(numbers), indent=1, allow_nan=False))
     index = out / "index.html"
-    index.write_text(doc, encoding="utf-8")
+    atomic_write_text(index, doc)
     return index

@@ -1,39 +1,103 @@
-"""`jaxcal calibrate DATASET.h5 --method M -o RESULT.h5 [--config NAME] [--set K=V ...] [--params P.json]`."""
+"""`jaxcal calibrate DATASET.h5 --method M -o RESULT.h5 [--config NAME|A0,A1,A2] [--set K=V ...] [--params P.json]`.
+
+`jaxcal calibrate --method M --list-params` prints the method's parameters (default, unit, meaning).
+"""
 
 from __future__ import annotations
 
 
 def add_arguments(p) -> None:
-    p.add_argument("dataset", help="a mesh or trajectory file")
+    from jaxcal.commands._common import CONFIG_HELP, add_output_flags
+
+    p.add_argument("dataset", nargs="?", help="a mesh or trajectory file")
     p.add_argument("--method", required=True, help="mesh: cf, pgp, ...; trajectory: gp, nls, ls, ...")
-    p.add_argument("-o", "--output", required=True, help="result file to write")
-    p.add_argument("--config", default=None, help="mesh frame configuration (configs/<NAME>); default (0, 1, 2)")
+    p.add_argument("-o", "--output", default=None, help="result file to write (required)")
+    p.add_argument("--config", default=None, help=CONFIG_HELP)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a method parameter")
     p.add_argument("--params", default=None, metavar="PARAMS.json", help="parameters from a JSON file (e.g. from `jaxcal tune`)")
-    p.add_argument("--json", action="store_true", help="print a JSON summary of the result")
+    p.add_argument("--list-params", action="store_true",
+                   help="print the method's parameters (default, unit, meaning) and exit")
+    add_output_flags(p, "print a JSON summary of the result")
+
+
+def list_params(args) -> int:
+    from jaxcal.commands._common import print_json
+    from jaxcal.methods import param_defaults
+    from jaxcal.params import describe
+
+    stages = param_defaults(args.method)
+    rows = []
+    for d in stages:
+        prefix = f"{'pgp' if 'PGP' in type(d).__name__ else 'batch'}." if len(stages) > 1 else ""
+        rows += [{**r, "name": prefix + r["name"]} for r in describe(d)]
+    if args.json:
+        print_json({"method": args.method, "params": rows})
+        return 0
+    print(f"parameters of --method {args.method} (set with --set KEY=VALUE):")
+    width = max(len(r["name"]) for r in rows)
+    for r in rows:
+        default = repr(r["default"]) if isinstance(r["default"], str) else str(r["default"])
+        unit = f" [{r['unit']}]" if r["unit"] else ""
+        print(f"  {r['name']:<{width}}  {default + unit:<16}  {r['meaning']}")
+    if len(stages) > 1:
+        print("  (a name without the pgp./batch. prefix sets it in every stage that has it)")
+    return 0
 
 
 def run(args) -> int:
     import time
 
-    from jaxcal.commands._common import load, print_json
-    from jaxcal.io import hdf5
-    from jaxcal.methods import calibrate
+    from jaxcal.commands._common import check_inputs, check_output_path, emit_json, load, resolve_config, say
+    from jaxcal.errors import JaxcalError
+    from jaxcal.methods import calibrate, get_method
     from jaxcal.params import load_params_json, parse_set
 
+    if args.list_params:
+        return list_params(args)
+    if args.dataset is None or args.output is None:
+        raise JaxcalError("calibrate needs DATASET.h5 and -o RESULT.h5 (or --list-params)")
+    check_inputs(args.dataset, args.params)
+    out = check_output_path(args.output, [args.dataset, args.params])  # paths first: no import, no read
+    from jaxcal.io import hdf5
+
     ds = load(args.dataset, ("mesh", "trajectory"))
+    get_method("mesh" if hasattr(ds, "node_ids") else "trajectory", args.method)  # unknown method: now
     params = load_params_json(args.params) if args.params else {}
     params.update(parse_set(args.set))
+    ds, config = resolve_config(ds, args.config)
     t0 = time.perf_counter()
-    result = calibrate(ds, args.method, params=params, config=args.config)
+    stages = _stages(args.method, params)
+    if stages:  # a stage-level bar (tqdm on a terminal; silent under --quiet, --json or a pipe)
+        from jaxcal.progress import progress_bar
+
+        fn = get_method("mesh" if hasattr(ds, "node_ids") else "trajectory", args.method)
+        with progress_bar(stages, args.method, "stage", enabled=not (args.quiet or args.json)) as bar:
+            result = fn(ds, params=params, config=config, progress=bar.update)
+    else:
+        result = calibrate(ds, args.method, params=params, config=config)
     elapsed = time.perf_counter() - t0
-    hdf5.write(args.output, result)
+    hdf5.write(out.path, result)
     import numpy as np
 
     n_est = int(np.isfinite(result.position).all(axis=1).sum())
-    if args.json:
-        print_json({"method": result.method, "dataset": result.dataset, "output": args.output,
-                    "estimated": n_est, "nodes": len(result.ids), "seconds": elapsed})
-    else:
-        print(f"{args.method}: {n_est}/{len(result.ids)} positions estimated in {elapsed:.2f} s -> {args.output}")
+    emit_json(args, {"method": result.method, "dataset": result.dataset, "output": args.output,
+                     "estimated": n_est, "nodes": len(result.ids), "seconds": elapsed, "overwrote": out.existed})
+    say(args, f"{args.method}: {n_est}/{len(result.ids)} positions estimated in {elapsed:.2f} s -> {args.output}"
+        f"{out.note()}")
+    return 0
+
+
+def _stages(method: str, params: dict) -> int:
+    """Progress units of a method that reports stages (batch, gp); 0 for the others."""
+    from jaxcal.params import with_overrides
+
+    if method == "batch":
+        from jaxcal.mesh.batch import BatchParams, stage_count
+
+        return stage_count(with_overrides(BatchParams(), params))
+    if method == "gp":
+        from jaxcal.trajectory.gp import GPParams
+
+        p = with_overrides(GPParams(), params)
+        return 1 if p.mean == "anchor" else p.stages
     return 0

@@ -64,7 +64,9 @@ def add_arguments(p) -> None:
         default=None,
         help=f"comma-separated subset of {','.join(DEMO_METHODS)} (default: all registered)",
     )
-    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    from jaxcal.commands._common import add_output_flags
+
+    add_output_flags(p, "print the summary as one JSON object")
 
 
 def embedded_dataset_path():
@@ -100,8 +102,10 @@ def run(args) -> int:
     from jaxcal.methods import MESH_METHODS, calibrate
     from jaxcal.metrics import evaluate, ranging_statistics
 
-    out = Path(args.output)
-    out.mkdir(parents=True, exist_ok=True)
+    from jaxcal.commands._common import check_output_path
+    from jaxcal.io.atomic import atomic_write_text
+
+    out = Path(check_output_path(args.output, folder=True).path)
     methods = [m for m in DEMO_METHODS if m in MESH_METHODS]
     if args.methods:
         wanted = [m.strip() for m in args.methods.split(",") if m.strip()]
@@ -112,9 +116,11 @@ def run(args) -> int:
             )
         methods = wanted
     stream = sys.stderr if args.json else sys.stdout
+    out.mkdir(parents=True, exist_ok=True)
 
     def say(*a):
-        print(*a, file=stream, flush=True)  # flushed: the runs take a while, show progress
+        if not args.quiet:
+            print(*a, file=stream, flush=True)  # flushed: the runs take a while, show progress
 
     ds, origin = load_default_dataset()
     groups = ranging_statistics(ds)
@@ -156,14 +162,14 @@ def run(args) -> int:
 
     say("")
     say(_format_runs(summary["runs"], ds.node_ids))
-    (out / "summary.json").write_text(_json(summary))
+    atomic_write_text(out / "summary.json", _json(summary))
     if results:
         from jaxcal.report import write_report
 
         say(f"report in {write_report(results, ds, out / 'report')}")
     if args.json:
         print_json(summary)
-    else:
+    elif not args.quiet:
         print(f"results in {out}/")
     return 0
 

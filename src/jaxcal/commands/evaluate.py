@@ -8,7 +8,9 @@ def add_arguments(p) -> None:
     p.add_argument(
         "--truth", required=True, help="the dataset with ground truth (mesh or trajectory)"
     )
-    p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+    from jaxcal.commands._common import add_output_flags
+
+    add_output_flags(p)
 
 
 def run(args) -> int:
@@ -21,6 +23,8 @@ def run(args) -> int:
     if args.json:
         report.pop("ecdf", None)
         print_json(report)
+        return 0
+    if args.quiet:
         return 0
     fmt = lambda v: "    -" if v is None or v != v else f"{v:7.3f}"  # noqa: E731
     print(f"{report['method']} on {report['dataset']}")

@@ -54,7 +54,9 @@ def add_arguments(p) -> None:
         metavar="OUT.h5",
         help="write ranked candidates (result file)",
     )
-    p.add_argument("--json", action="store_true", help="print one JSON summary object")
+    from jaxcal.commands._common import add_output_flags
+
+    add_output_flags(p, "print one JSON summary object")
     p.add_argument("--top-k", type=int, default=5, help="candidates per query (default 5)")
     p.add_argument(
         "--max-anchors",
@@ -234,8 +236,6 @@ def _ranges_from_contract(qtime, rtime, ranchor, rrange, n_anchors, window_s):
 
 def write_places_files(directory, scene, anchor_error_m: float, seed: int):
     """Write a simulated scene as DB, queries and anchors files into `directory`; return paths."""
-    import os
-    import tempfile
     from pathlib import Path
 
     import h5py
@@ -244,6 +244,7 @@ def write_places_files(directory, scene, anchor_error_m: float, seed: int):
     from jaxcal.data import Result, TrajectoryDataset
     from jaxcal.errors import JaxcalError
     from jaxcal.io import hdf5
+    from jaxcal.io.atomic import atomic_path
     from jaxcal.sim.places import perturb_anchors
 
     d = Path(directory)
@@ -273,25 +274,18 @@ def write_places_files(directory, scene, anchor_error_m: float, seed: int):
         )
 
     def write_with(path, obj, group, items, attrs=None):
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        os.close(fd)
-        try:
-            hdf5.write(tmp, obj)
-            with h5py.File(tmp, "a") as f:
-                g = f.create_group(group)
-                for k, v in items.items():
-                    if isinstance(v, list):
-                        g.create_dataset(
-                            k, data=np.array(v, dtype=object), dtype=h5py.string_dtype()
-                        )
-                    else:
-                        g.create_dataset(k, data=v)
-                for k, v in (attrs or {}).items():
-                    g.attrs[k] = v
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
+        with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+            hdf5.write_open(f, obj)
+            g = f.create_group(group)
+            for k, v in items.items():
+                if isinstance(v, list):
+                    g.create_dataset(
+                        k, data=np.array(v, dtype=object), dtype=h5py.string_dtype()
+                    )
+                else:
+                    g.create_dataset(k, data=v)
+            for k, v in (attrs or {}).items():
+                g.attrs[k] = v
 
     db_path, q_path, an_path = d / "places_db.h5", d / "places_queries.h5", d / "places_anchors.h5"
     write_with(
@@ -358,7 +352,13 @@ def run(args) -> int:
     if args.max_anchors is not None and args.max_anchors < 0:
         raise JaxcalError(f"--max-anchors must be >= 0, got {args.max_anchors}")
 
+    from jaxcal.commands._common import check_inputs, check_output_path
+
+    inputs = [args.db, args.queries, args.anchors]
+    check_inputs(inputs)
+    out = check_output_path(args.output, inputs) if args.output else None
     if args.simulate is not None:
+        check_output_path(args.simulate, folder=True)
         if args.db or args.queries or args.anchors:
             raise JaxcalError(
                 "--simulate writes its own DB, queries and anchors; give no input files"
@@ -469,9 +469,10 @@ def run(args) -> int:
     if args.output:
         _write_output(args.output, q_ids, best, cand, settings, q_file, args.top_k)
         summary["output"] = args.output
+        summary["overwrote"] = out.existed
     if args.json:
         print_json(summary)
-    else:
+    elif not args.quiet:
         line = (
             f"gate: {len(q_ids)} queries against {kf_pos.shape[0]} keyframes, "
             f"{summary['mean_anchors_heard']:.2f} anchors heard, "
@@ -480,13 +481,11 @@ def run(args) -> int:
         if truth is not None:
             g, f = summary["success_gated"], summary["success_full"]
             line += f"; success gated {g:.1%} vs full {f:.1%}"
-        print(line + (f" -> {args.output}" if args.output else ""))
+        print(line + (f" -> {args.output}{out.note()}" if args.output else ""))
     return 0
 
 
 def _write_output(path, q_ids, best, cand, settings, q_file, top_k) -> None:
-    import os
-    import tempfile
     from pathlib import Path
 
     import h5py
@@ -495,6 +494,7 @@ def _write_output(path, q_ids, best, cand, settings, q_file, top_k) -> None:
     from jaxcal.data import Result
     from jaxcal.errors import JaxcalError
     from jaxcal.io import hdf5
+    from jaxcal.io.atomic import atomic_path
 
     p = Path(path)
     if not p.parent.exists():
@@ -507,16 +507,9 @@ def _write_output(path, q_ids, best, cand, settings, q_file, top_k) -> None:
         frame="world",
         params={**dataclasses.asdict(settings), "top_k": top_k},
     )
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
-    os.close(fd)
-    try:
-        hdf5.write(tmp, res)
-        with h5py.File(tmp, "a") as f:
-            g = f.create_group("candidates")
-            g.create_dataset("index", data=np.asarray(cand.index, np.int32))
-            g.create_dataset("distance", data=np.asarray(cand.distance, np.float64))
-            g.create_dataset("n_admissible", data=np.asarray(cand.n_admissible, np.int32))
-        os.replace(tmp, p)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    with atomic_path(p) as tmp, h5py.File(tmp, "w") as f:
+        hdf5.write_open(f, res)
+        g = f.create_group("candidates")
+        g.create_dataset("index", data=np.asarray(cand.index, np.int32))
+        g.create_dataset("distance", data=np.asarray(cand.distance, np.float64))
+        g.create_dataset("n_admissible", data=np.asarray(cand.n_admissible, np.int32))

@@ -1,11 +1,22 @@
-"""`jaxcal info FILE [--json]`: a readable summary of a jaxcal file."""
+"""`jaxcal info FILE [--json] [--quiet]`: a readable summary of any file jaxcal writes (contract files,
+sweep stores, record journals, tune parameter files)."""
 
 from __future__ import annotations
 
 
 def add_arguments(p) -> None:
-    p.add_argument("file", help="a jaxcal HDF5 file")
-    p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+    from jaxcal.commands._common import add_output_flags
+
+    p.add_argument("file", help="a file written by jaxcal (contract HDF5, sweep store, journal, params JSON)")
+    add_output_flags(p)
+
+
+def time_is_index(t) -> bool:
+    """Whether epoch times are whole numbers stepping by whole numbers: round indices, not seconds."""
+    import numpy as np
+
+    t = np.asarray(t, float)
+    return t.size > 1 and bool(np.all(t == np.round(t))) and bool(np.all(np.diff(t) >= 1))
 
 
 def summarise(obj) -> dict:
@@ -26,6 +37,7 @@ def summarise(obj) -> dict:
             nodes=list(obj.node_ids),
             epochs=k,
             time_span_s=[float(obj.time[0]), float(obj.time[-1])] if k else None,
+            time_is_index=time_is_index(obj.time),
             ranges=int(measured.sum()),
             truth=obj.truth is not None and bool(np.isfinite(obj.truth).all(axis=1).any()),
             los_known=obj.los is not None,
@@ -71,17 +83,38 @@ def summarise(obj) -> dict:
 
 def run(args) -> int:
     from jaxcal.commands._common import load, print_json
+    from jaxcal.commands._files import identify, journal_summary, params_summary, sweep_summary
 
-    obj = load(args.file)
-    s = summarise(obj)
+    kind = identify(args.file)
+    if kind in ("mesh", "trajectory", "result"):
+        s = summarise(load(args.file))
+    elif kind == "sweep":
+        s = sweep_summary(args.file)
+    elif kind == "journal":
+        s = journal_summary(args.file)
+    elif kind == "params":
+        s = params_summary(args.file)
+    else:
+        import json
+        from pathlib import Path
+
+        s = {"format": "summary", "keys": sorted(json.loads(Path(args.file).read_text(encoding="utf-8")))}
     if args.json:
         print_json(s)
+        return 0
+    if args.quiet:
+        return 0
+    if kind not in ("mesh", "trajectory", "result"):
+        _print_other(args.file, s)
         return 0
     kind = s["format"]
     print(f"{args.file}: jaxcal {kind} file '{s['name']}'")
     if kind == "mesh":
         t = s["time_span_s"]
-        span = f"{t[0]:.3f} .. {t[1]:.3f} s ({t[1] - t[0]:.1f} s)" if t else "empty"
+        if t and s["time_is_index"]:  # e.g. dwm1001-autocal: the rows of the files, not a clock
+            span = f"epoch index {t[0]:.0f}..{t[1]:.0f} (whole numbers: round indices, not seconds)"
+        else:
+            span = f"{t[0]:.3f} .. {t[1]:.3f} s ({t[1] - t[0]:.1f} s)" if t else "empty"
         print(f"  nodes: {len(s['nodes'])}   epochs: {s['epochs']}   ranges: {s['ranges']}   time: {span}")
         print(f"  truth: {'yes' if s['truth'] else 'no'}   LOS matrix: {'yes' if s['los_known'] else 'no'}"
               f"   pairs ever measured: {100 * s['pair_coverage']:.1f} %")
@@ -104,3 +137,29 @@ def run(args) -> int:
         if s["params"]:
             print("  params: " + ", ".join(f"{k}={v}" for k, v in s["params"].items()))
     return 0
+
+
+def _print_other(path: str, s: dict) -> None:
+    kind = s["format"]
+    if kind == "sweep":
+        print(f"{path}: jaxcal sweep store, method {s['method']}: {s['done']}/{s['runs']} runs done")
+        print(f"  scenarios: {', '.join(s['scenarios'])}   seeds: {len(s['seeds'])}")
+        for k, v in s["swept"].items():
+            print(f"  swept {k}: {', '.join(f'{x:g}' for x in v)}")
+        if s["fixed_params"]:
+            print(f"  fixed: {s['fixed_params']}")
+        for k, v in s["metrics"].items():
+            print(f"  {k}: " + ("no run done" if v is None else f"{v[0]:.3f} .. {v[1]:.3f}"))
+    elif kind == "journal":
+        h = s["header"]
+        print(f"{path}: jaxcal record journal ({h.get('protocol', '?')}), {s['frames']} frames"
+              + (f", torn tail of {s['torn_bytes']} bytes" if s["torn_bytes"] else ""))
+        print(f"  rebuild it with: jaxcal record --replay {path} -o OUT.h5")
+    elif kind == "params":
+        print(f"{path}: jaxcal parameters for --method {s['method']} (from jaxcal tune)")
+        print("  params: " + ", ".join(f"{k}={v}" for k, v in s["params"].items()))
+        t = s["tuning"]
+        if t:
+            print(f"  tuned on {t.get('dataset', '?')} with objective {t.get('objective', t.get('objective_name', '?'))}")
+    else:
+        print(f"{path}: JSON summary written by jaxcal, keys: {', '.join(s['keys'])}")

@@ -54,8 +54,8 @@ def add_arguments(p) -> None:
                    help="live calibration while recording (pgp: the filter runs on epochs as they close, "
                         "positions on stderr; OUT.pgp.h5 at the end); other mesh methods run once at the end")
     p.add_argument("--config", default=None, metavar="A0,A1,A2",
-                   help="--calibrate: node ids of the frame (default: the first three by id order that ranged "
-                        "each other)")
+                   help="--calibrate: node ids of the frame, or a configuration name stored in a replayed HDF5 "
+                        "file (default: the first three by id order that ranged each other)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="--calibrate: override a method parameter")
     p.add_argument("--min-epochs", type=int, default=20,
@@ -81,7 +81,6 @@ def _check_calibrate(method: str | None) -> None:
 def run(args) -> int:
     import sys
     import time
-    from pathlib import Path
 
     from jaxcal.commands._common import print_json
     from jaxcal.errors import JaxcalError
@@ -92,7 +91,11 @@ def run(args) -> int:
         raise JaxcalError(f"--duration must be positive, got {args.duration}")
     if not args.rate > 0:
         raise JaxcalError(f"--rate must be positive, got {args.rate}")
-    out = Path(args.output)
+    from jaxcal.commands._common import check_output_path
+
+    out = check_output_path(args.output, [args.replay, args.raw_out]).path
+    if args.raw_out:
+        check_output_path(args.raw_out, [args.replay])
     kw = {"epoch_s": args.epoch, "fmt": args.fmt, "name": args.name or out.stem, "self_id": args.self_id}
     if (args.config is not None or args.set) and args.calibrate is None:
         raise JaxcalError("--config and --set need --calibrate")
@@ -103,11 +106,7 @@ def run(args) -> int:
     if args.calibrate == "pgp":
         from jaxcal.io.live import LiveCalibrator
 
-        frame = None
-        if args.config is not None:
-            frame = tuple(s.strip() for s in args.config.split(","))
-            if len(frame) != 3 or len(set(frame)) != 3 or not all(frame):
-                raise JaxcalError(f"--config must be three distinct node ids a0,a1,a2, got {args.config!r}")
+        frame = _frame_ids(args.config, args.replay)
         live = LiveCalibrator(params, frame, min_epochs=args.min_epochs,
                               stream=None if args.quiet else sys.stderr)
     on_flush = live.guarded_update if live is not None else None
@@ -184,6 +183,24 @@ def run(args) -> int:
     if calib_error is not None:
         raise JaxcalError(f"recording written to {out}, but --calibrate {args.calibrate} failed: {calib_error}")
     return code
+
+
+def _frame_ids(text: str | None, replay: str | None):
+    """`--config` (the shared parser: three node ids, or a configuration stored in a replayed file)."""
+    from jaxcal.commands._common import parse_config, resolve_config
+    from jaxcal.errors import JaxcalError
+
+    cfg = parse_config(text)
+    if cfg is None or isinstance(cfg, tuple):
+        return cfg
+    if replay and str(replay).endswith((".h5", ".hdf5")):
+        from jaxcal.commands._common import load
+
+        ds, name = resolve_config(load(replay, ("mesh",)), cfg)
+        return tuple(ds.node_ids[i] for i in ds.config(name))
+    raise JaxcalError(
+        f"--config {cfg}: a live recording has no stored configurations; give three node ids A0,A1,A2"
+    )
 
 
 def _overrides(items) -> dict:

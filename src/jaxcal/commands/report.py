@@ -56,9 +56,9 @@ def add_arguments(p) -> None:
         choices=["best", "facet"],
         help="other swept parameters (sigma_v, ...): best value per cell, or one surface each",
     )
-    p.add_argument(
-        "--json", action="store_true", help="print the report's numbers as one JSON object"
-    )
+    from jaxcal.commands._common import add_output_flags
+
+    add_output_flags(p, "print the report's numbers as one JSON object")
 
 
 def is_sweep_file(path: str) -> bool:
@@ -115,7 +115,11 @@ def run(args) -> int:
     from jaxcal.errors import JaxcalError
     from jaxcal.report import parse_posteriors, write_report
 
+    from jaxcal.commands._common import check_inputs, check_output_path
+
     t0 = time.perf_counter()
+    check_inputs(args.files, args.truth)
+    check_output_path(args.output, folder=True)
     spec = parse_posteriors(args.posteriors)
     sweeps, result_paths = [], []
     for path in args.files:
@@ -127,13 +131,20 @@ def run(args) -> int:
     results = [load(path, ("result",)) for path in result_paths]
     if results and truth is None:
         raise JaxcalError("calibration results need --truth DATASET.h5")
-    index = write_report(
-        results, truth, args.output, labels=args.label, posteriors=spec, sweeps=sweeps
-    )
+    from jaxcal.data import MeshDataset
+    from jaxcal.progress import progress_bar
+    from jaxcal.report import report_sections
+
+    total = report_sections(truth is not None, len(results), isinstance(truth, MeshDataset), len(sweeps))
+    with progress_bar(total, "report", "section", enabled=not (args.quiet or args.json)) as bar:
+        index = write_report(
+            results, truth, args.output, labels=args.label, posteriors=spec, sweeps=sweeps,
+            progress=bar.update,
+        )
     seconds = time.perf_counter() - t0
     if args.json:
         numbers = json.loads((index.parent / "report.json").read_text())
         print_json({"index": str(index), "seconds": seconds, **numbers})
-    else:
+    elif not args.quiet:
         print(f"report in {index} ({seconds:.1f} s)")
     return 0

@@ -20,7 +20,9 @@ def add_arguments(p) -> None:
         default=0.0,
         help="trajectory only: odometry drift (random walk) [m/sqrt(s)]",
     )
-    p.add_argument("--json", action="store_true", help="print a JSON summary")
+    from jaxcal.commands._common import add_output_flags
+
+    add_output_flags(p, "print a JSON summary")
 
 
 def _trajectory_simulator():
@@ -38,7 +40,7 @@ def _trajectory_simulator():
 
 
 def run(args) -> int:
-    from jaxcal.commands._common import print_json
+    from jaxcal.commands._common import check_output_path, emit_json, say
     from jaxcal.errors import JaxcalError
     from jaxcal.io import hdf5
 
@@ -59,28 +61,26 @@ def run(args) -> int:
         )
     if args.seed < 0:
         raise JaxcalError(f"--seed must be non-negative, got {args.seed}")
+    out = check_output_path(args.output)
     ds = simulate(scenario, seed=args.seed, **kwargs)
-    hdf5.write(args.output, ds)
+    hdf5.write(out.path, ds)
     summary = {
         "kind": args.kind,
         "scenario": scenario,
         "seed": args.seed,
         "name": ds.name,
         "output": args.output,
+        "overwrote": out.existed,
     }
     if args.kind == "mesh":
         summary.update(nodes=ds.n_nodes, epochs=ds.n_epochs)
     else:
         summary.update(anchors=ds.n_anchors, ranges=ds.n_ranges)
-    if args.json:
-        print_json(summary)
-    else:
-        size = (
-            f"{summary['nodes']} nodes, {summary['epochs']} epochs"
-            if args.kind == "mesh"
-            else (f"{summary['anchors']} anchors, {summary['ranges']} ranges")
-        )
-        print(
-            f"simulated {args.kind} scenario {scenario!r} (seed {args.seed}): {size} -> {args.output}"
-        )
+    emit_json(args, summary)
+    size = (
+        f"{summary['nodes']} nodes, {summary['epochs']} epochs"
+        if args.kind == "mesh"
+        else (f"{summary['anchors']} anchors, {summary['ranges']} ranges")
+    )
+    say(args, f"simulated {args.kind} scenario {scenario!r} (seed {args.seed}): {size} -> {args.output}{out.note()}")
     return 0

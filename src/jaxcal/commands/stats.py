@@ -17,7 +17,9 @@ _ROWS = (
 
 def add_arguments(p) -> None:
     p.add_argument("dataset", help="a mesh or trajectory file with ground truth")
-    p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    from jaxcal.commands._common import add_output_flags
+
+    add_output_flags(p, "print one JSON object instead of a table")
 
 
 def format_table(groups: dict, reference: dict | None = None) -> str:
@@ -56,7 +58,7 @@ def run(args) -> int:
     groups = ranging_statistics(ds)
     if args.json:
         print_json({"groups": groups})
-    else:
+    elif not args.quiet:
         print(f"ranging errors |range - true distance| of {ds.name}")
         print(format_table(groups))
     return 0

@@ -47,7 +47,7 @@ def add_arguments(p) -> None:
         metavar="SECONDS",
         help="pause after each batch (demonstrating interruption and resumption)",
     )
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--quiet", action="store_true", help="no progress lines, no summary line")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
 
 
@@ -74,7 +74,7 @@ def _datasets(spec, pl, spec_dir):
     """One (dataset, config) per plan dataset; files relative to the spec's folder."""
     from pathlib import Path
 
-    from jaxcal.commands._common import load
+    from jaxcal.commands._common import load, resolve_config
     from jaxcal.sweep import simulate_or_raise
 
     cache, out = {}, []
@@ -85,9 +85,9 @@ def _datasets(spec, pl, spec_dir):
             path = path if path.is_absolute() else Path(spec_dir) / path
             if str(path) not in cache:
                 cache[str(path)] = load(str(path), ("mesh",))
-            out.append((cache[str(path)], sc.config))
+            out.append(resolve_config(cache[str(path)], sc.config))  # a name or three node ids
         else:
-            out.append((simulate_or_raise(sc, seed), sc.config))
+            out.append(resolve_config(simulate_or_raise(sc, seed), sc.config))
     return out
 
 
@@ -113,33 +113,21 @@ def read_store(path: str):
 
 
 def _write_store(path, attrs, runs, metrics, done) -> None:
-    """Whole file to a temporary name, then `os.replace` (atomic on POSIX)."""
-    import os
-    import tempfile
-    from pathlib import Path
-
+    """Whole file to a temporary name, then `os.replace` (`jaxcal.io.atomic`)."""
     import h5py
 
-    out = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=str(out.parent), prefix=out.name, suffix=".tmp")
-    os.close(fd)
-    try:
-        with h5py.File(tmp, "w") as f:
-            for k, v in attrs.items():
-                f.attrs[k] = v
-            g = f.create_group("runs")
-            for k, v in runs.items():
-                g.create_dataset(k, data=v.astype("S") if v.dtype.kind == "U" else v)
-            m = f.create_group("metrics")
-            for k, v in metrics.items():
-                m.create_dataset(k, data=v)
-            f.create_dataset("done", data=done)
-        with open(tmp, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, out)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    from jaxcal.io.atomic import atomic_path
+
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        for k, v in attrs.items():
+            f.attrs[k] = v
+        g = f.create_group("runs")
+        for k, v in runs.items():
+            g.create_dataset(k, data=v.astype("S") if v.dtype.kind == "U" else v)
+        m = f.create_group("metrics")
+        for k, v in metrics.items():
+            m.create_dataset(k, data=v)
+        f.create_dataset("done", data=done)
 
 
 def run(args) -> int:
@@ -160,6 +148,9 @@ def run(args) -> int:
     if args.batch_size is not None and args.batch_size < 1:
         raise JaxcalError("--batch-size must be >= 1")
     text, doc = _spec_text(args.spec)
+    from jaxcal.commands._common import check_output_path
+
+    checked = check_output_path(args.output, [args.spec])
     if args.batch_size is not None:
         doc["batch_size"] = args.batch_size
     import jax
@@ -262,11 +253,13 @@ def run(args) -> int:
             "seconds": el,
             "devices": jax.device_count(),
             "processes": jax.process_count(),
+            "overwrote": bool(args.restart and checked.existed),
         }
         if args.json:
             print_json(summary)
-        else:
+        elif not args.quiet:
             print(
                 f"sweep: {computed} runs computed ({resumed} already done) in {el:.1f} s -> {out}"
+                + (f" (overwrote {out})" if summary["overwrote"] else "")
             )
     return 0

@@ -22,7 +22,9 @@ def add_arguments(p) -> None:
         metavar="PARAMS.json",
         help="parameters for `jaxcal calibrate --params`",
     )
-    p.add_argument("--config", default=None, help="mesh frame configuration (configs/<NAME>)")
+    from jaxcal.commands._common import CONFIG_HELP, add_output_flags
+
+    p.add_argument("--config", default=None, help=CONFIG_HELP)
     p.add_argument(
         "--epochs", type=int, default=200, help="tuning window: the first K epochs (200)"
     )
@@ -38,25 +40,25 @@ def add_arguments(p) -> None:
         metavar="KEY=VALUE",
         help="fixed filter parameter (also the start of sigma_r, sigma_v, tau)",
     )
-    p.add_argument("--json", action="store_true", help="print the outcome as one JSON object")
+    add_output_flags(p, "print the outcome as one JSON object")
 
 
 def run(args) -> int:
     import dataclasses
     import json
-    import os
-    import tempfile
-    from pathlib import Path
 
     import jax
 
-    from jaxcal.commands._common import _clean, load, print_json
+    from jaxcal.commands._common import _clean, check_output_path, load, print_json, resolve_config
     from jaxcal.errors import JaxcalError
+    from jaxcal.io.atomic import atomic_write_text
     from jaxcal.params import parse_set
 
     if args.epochs < 1 or not args.cell > 0 or args.max_steps < 1 or args.tau_temp < 0:
         raise JaxcalError("--epochs and --max-steps must be >= 1, --cell > 0, --tau-temp >= 0")
+    out = check_output_path(args.output, [args.dataset])
     ds = load(args.dataset, ("mesh",))
+    ds, config = resolve_config(ds, args.config)
     user = parse_set(args.set)
     if "cell_m" in user:
         raise JaxcalError("set the tuning grid with --cell, not --set cell_m")
@@ -66,7 +68,7 @@ def run(args) -> int:
         res = T.tune(
             ds,
             {**user, "cell_m": args.cell},
-            args.config,
+            config,
             objective_name=args.objective,
             epochs=args.epochs,
             tau_temp=args.tau_temp,
@@ -85,14 +87,10 @@ def run(args) -> int:
             **{f.name: getattr(res, f.name) for f in dataclasses.fields(res) if f.name != "params"},
         },
     }
-    out = Path(args.output)
-    fd, tmp = tempfile.mkstemp(dir=out.parent if str(out.parent) else ".", suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(_clean(doc), f, indent=2)
-    os.replace(tmp, out)
+    atomic_write_text(out.path, json.dumps(_clean(doc), indent=2))
     if args.json:
-        print_json(doc)
-    else:
+        print_json({**doc, "overwrote": out.existed})
+    elif not args.quiet:
         p, hb, ha = res.params, res.hard_before, res.hard_after
         print(
             f"tune {args.objective}: {res.before:.4g} -> {res.after:.4g} in {res.steps} steps "
@@ -102,6 +100,6 @@ def run(args) -> int:
                if "nlos_weight" in p else "")
             + "; "
             f"window rmse {hb['rmse_m']:.3f} -> {ha['rmse_m']:.3f} m, nlpl {hb['nlpl']:.3f} -> "
-            f"{ha['nlpl']:.3f} -> {out}"
+            f"{ha['nlpl']:.3f} -> {out}{out.note()}"
         )
     return 0

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -20,8 +19,9 @@ import numpy as np
 
 from jaxcal.data import MeshDataset, Result, TrajectoryDataset
 from jaxcal.errors import DataError, FormatError
+from jaxcal.io.atomic import atomic_path
 
-__all__ = ["read", "write", "read_format", "FORMAT_VERSION", "FORMATS"]
+__all__ = ["read", "write", "write_open", "read_format", "FORMAT_VERSION", "FORMATS"]
 
 FORMAT_VERSION = 1
 FORMATS = ("mesh", "trajectory", "result")
@@ -210,21 +210,20 @@ def _write_root(f, fmt: str, name: str, obj) -> None:
 
 
 def write(path: str | os.PathLike, obj: MeshDataset | TrajectoryDataset | Result) -> Path:
-    """Write `obj` to `path` atomically (temporary file, then rename). Returns the path."""
+    """Write `obj` to `path` atomically (`jaxcal.io.atomic`: temporary file, then rename). Returns the path."""
     path = Path(path)
     if path.parent and not path.parent.exists():
         raise FormatError(f"{path}: folder {path.parent} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-    os.close(fd)
-    try:
-        with h5py.File(tmp, "w") as f:
-            _write_obj(f, obj)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    if path.is_dir():
+        raise FormatError(f"{path}: is a folder, not a file")
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        _write_obj(f, obj)
     return path
+
+
+def write_open(f: h5py.File, obj: MeshDataset | TrajectoryDataset | Result) -> None:
+    """Write `obj` into an HDF5 file open for writing (for files that add their own groups)."""
+    _write_obj(f, obj)
 
 
 def _write_obj(f: h5py.File, obj) -> None:

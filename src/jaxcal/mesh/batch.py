@@ -36,6 +36,7 @@ frame fixes.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -796,10 +797,18 @@ def _active_nodes(i: np.ndarray, j: np.ndarray, n: int, a0: int) -> np.ndarray:
     return seen
 
 
+def stage_count(params: BatchParams) -> int:
+    """Stages `solve` reports to its `progress` callback: multi-start fit, relocation, offset choice
+    (bias=auto), all-ranges refinement (summary=all), covariance, posterior sampler (estimate=mean)."""
+    p = params
+    return 3 + (p.bias == "auto") + (p.summary == "all") + (p.estimate == "mean")
+
+
 @in_float64
 def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParams | None = None,
           node_ids: tuple[str, ...] | None = None,
-          extra_starts: np.ndarray | None = None) -> BatchSolution:
+          extra_starts: np.ndarray | None = None,
+          progress: Callable[[int], None] | None = None) -> BatchSolution:
     """Robust batch fit of static node positions from a range stream.
 
     Args:
@@ -818,6 +827,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         JaxcalError: when a0, a1 or a2 are not connected by ranges, or fewer than dim + 1 nodes are.
     """
     p = params or BatchParams()
+    done = progress or (lambda k: None)  # one call per finished stage (`stage_count`)
     r = np.asarray(range_m, dtype=np.float64)
     if r.ndim != 3 or r.shape[1] != r.shape[2]:
         raise JaxcalError(f"batch: expected ranges of shape (K, N, N), got {r.shape}")
@@ -872,6 +882,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     best = int(np.argmin(costs))
     state = jax.tree.map(lambda a: a[best], states)
     cost = float(costs[best])
+    done(1)
     d_j, w_j = jnp.asarray(np.nan_to_num(d_pair)), jnp.asarray(w_pair)
     grid_n = p.relocate_grid if p.dim == 2 else max(p.relocate_grid // 3, 2)
     for _ in range(p.relocate_rounds):
@@ -885,6 +896,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         if not moved_costs[k] < cost - 1e-9 * max(1.0, abs(cost)):
             break
         state, cost = jax.tree.map(lambda a: a[k], moved), float(moved_costs[k])
+    done(1)
     chosen, boot = ("network" if p.bias == "auto" else p.bias), np.full(2, np.nan)
     if p.bias == "auto":
         boot = np.asarray(offset_bootstrap(state, obs_med, nb, jax.random.fold_in(key, 7), p.n_boot, p.solver,
@@ -896,6 +908,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
             starts = jax.tree.map(lambda a: jnp.repeat(a[None], s_count, axis=0), start)
             refit, _ = _fit_starts(starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc))
             state = jax.tree.map(lambda a: a[0], refit)
+        done(1)
     obs = obs_pairs = obs_med  # obs_pairs: what the posterior of estimate=mean sees, one per pair
     if p.summary == "all":
         i_a, j_a, z_a, w_a = observations(r, "all")
@@ -909,6 +922,8 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
                           p.max_steps, p.irls_iters)
         if p.estimate == "mean":  # the posterior's pair observations: where the all-ranges fit puts them
             obs_pairs = _pair_locations(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb)
+        jax.block_until_ready(state.x)
+        done(1)
 
     x_sub = np.asarray(state.x)
     x_frame_sub = to_frame(x_sub, int(remap[a0]), int(remap[a1]), int(remap[a2]))
@@ -931,6 +946,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     cov_free, s2 = _covariance(jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c,
                                state.b, obs, nb)
     cov_free = np.asarray(cov_free)
+    done(1)
     offset, node_b, accept, rhat = float(state.c), np.asarray(state.b), float("nan"), float("nan")
     used = "map"
     if p.estimate == "mean":
@@ -940,6 +956,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         f = free.size
         mean, cov_s = np.asarray(mean), np.asarray(cov_s)
         accept, rhat = float(acc), float(rh)
+        done(1)
         if rhat <= RHAT_MAX and np.isfinite(mean).all() and np.isfinite(cov_s).all():
             x_frame_sub[mask] = mean[:f]
             cov_free, offset, node_b = cov_s[:f, :f], float(mean[f]), mean[f + 1:]
@@ -992,13 +1009,15 @@ def warn_if_unmixed(sol: BatchSolution, p: BatchParams) -> bool:
     return True
 
 
-def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> Result:
+def calibrate(dataset: MeshDataset, params=None, config: str | None = None,
+              progress: Callable[[int], None] | None = None) -> Result:
     """`--method batch`: robust batch calibration of a static mesh (see the module docstring).
 
     Args:
         dataset: a `MeshDataset`.
         params: overrides of `BatchParams` (strings from `--set` are cast).
         config: frame configuration name (`dataset.config(config)` gives a0, a1, a2).
+        progress: called with 1 after each stage (`stage_count(params)` calls in all).
 
     Returns:
         A `Result` with final positions and covariances in the a0/a1/a2 frame, no track.
@@ -1007,7 +1026,7 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
 
     p = with_overrides(BatchParams(), params)
     anchors = dataset.config(config)
-    sol = solve(dataset.range, anchors, p, dataset.node_ids)
+    sol = solve(dataset.range, anchors, p, dataset.node_ids, progress=progress)
     warn_if_unmixed(sol, p)
     p = eqx.tree_at(lambda q: (q.bias, q.estimate), p, (sol.bias, sol.estimate))  # record what was used
     return Result(

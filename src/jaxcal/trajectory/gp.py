@@ -637,11 +637,13 @@ def _calibrate_all(x, r, mask, centre, half, planar, p: GPParams, n_rounds: int,
 
 
 @in_float64
-def calibrate(dataset, params=None, config=None) -> Result:
+def calibrate(dataset, params=None, config=None, progress=None) -> Result:
     """`--method gp`: GP regression of the range per anchor, then the anchor search (frame `world`).
 
     Args:
         dataset: TrajectoryDataset. params: overrides of `GPParams`. config: ignored.
+        progress: called with 1 after each stage (`params.stages` calls; every anchor is fitted at
+            once in a stage, vmapped); one call in all with `mean=anchor`.
 
     Returns:
         Result with `position` (A, 3) and `covariance` (A, 3, 3); fitted hyperparameters in params.
@@ -681,7 +683,10 @@ def calibrate(dataset, params=None, config=None) -> Result:
         ]
     )
     if p.mean == "anchor":
-        return _calibrate_anchor_mean(dataset, p, groups, info, n, planar)
+        out = _calibrate_anchor_mean(dataset, p, groups, info, n, planar)
+        if progress is not None:
+            progress(1)
+        return out
     grid_z = 1 if planar.all() else p.grid
     est = cov = hyp = None
     half_prev = np.full((a_n, 3), np.inf)
@@ -725,6 +730,9 @@ def calibrate(dataset, params=None, config=None) -> Result:
             n_rounds,
             grid_z,
         )
+        if progress is not None:
+            jax.block_until_ready(est)
+            progress(1)
     info = dict(
         info,
         n_rounds=n_rounds,

@@ -32,13 +32,15 @@ IMPORTERS: dict[str, tuple[str, str, tuple[str, ...]]] = {
 }
 
 
-def import_recording(fmt: str, *sources: str | os.PathLike, name: str | None = None):
+def import_recording(fmt: str, *sources: str | os.PathLike, name: str | None = None, force: bool = False):
     """Convert a recording to a dataset.
 
     Args:
         fmt: one of `IMPORTERS` (e.g. "hymn").
         *sources: the format's source paths, in the order of `IMPORTERS[fmt][2]`.
         name: dataset name; default derived from the source path.
+        force: for importers that join sources by id (dwm1001: range files and a layout yaml), import
+            even when the ids do not match.
 
     Returns:
         A `MeshDataset` or `TrajectoryDataset`.
@@ -51,4 +53,8 @@ def import_recording(fmt: str, *sources: str | os.PathLike, name: str | None = N
             f"importer {fmt!r} takes {len(args)} source argument(s) {' '.join(args)}, got {len(sources)}"
         )
     fn = getattr(importlib.import_module(f"jaxcal.io.importers.{module}"), func)
+    import inspect
+
+    if "force" in inspect.signature(fn).parameters:
+        return fn(*sources, name=name, force=force)
     return fn(*sources, name=name)

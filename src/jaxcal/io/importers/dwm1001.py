@@ -158,13 +158,16 @@ def _frame_configs(rng: np.ndarray) -> dict[str, tuple[int, int, int]]:
 
 
 def import_dwm1001(scenario_dir: str | os.PathLike, nodes_cfg: str | os.PathLike,
-                   name: str | None = None) -> MeshDataset:
+                   name: str | None = None, force: bool = False) -> MeshDataset:
     """Read one dwm1001-autocal scenario into a mesh dataset.
 
     Args:
         scenario_dir: folder with the `<NODE>_ranging_data.txt` files.
         nodes_cfg: the scenario's nodes_cfg yaml (node order and `gt` truth).
         name: dataset name; default `dwm1001-<yaml stem>`.
+        force: import even when the folder holds files of nodes that the yaml does not list (their
+            ranges are then left out); otherwise that is an error. A yaml node without a file is only
+            noted (its row is NaN; the other nodes' ranges to it are kept).
 
     Returns:
         `MeshDataset` (K rounds, N nodes, truth (N, 2) or (N, 3)), configurations conf1/conf2.
@@ -185,6 +188,14 @@ def import_dwm1001(scenario_dir: str | os.PathLike, nodes_cfg: str | os.PathLike
         mats.append(m)
     if len(missing) == n:
         raise JaxcalError(f"{d}: no '<NODE>_ranging_data.txt' file for any node of {Path(nodes_cfg).name}")
+    suffix = "_ranging_data.txt"
+    extra = sorted(f.name[: -len(suffix)] for f in d.glob(f"*{suffix}") if f.name[: -len(suffix)] not in ids)
+    if extra and not force:
+        lacking = f"; layout node(s) {', '.join(missing)} have no file" if missing else ""
+        raise JaxcalError(
+            f"{d}: node ids do not match {Path(nodes_cfg).name}: files for node(s) {', '.join(extra)} that the "
+            f"layout does not list{lacking} (--force imports anyway, without them)"
+        )
     k = max(m.shape[0] for m in mats if m is not None)
     raw = np.full((k, n, n), np.nan)
     for i, m in enumerate(mats):
@@ -213,6 +224,8 @@ def import_dwm1001(scenario_dir: str | os.PathLike, nodes_cfg: str | os.PathLike
         notes.append(f"{bad_lines} malformed line(s) skipped")
     if missing:
         notes.append(f"no file for node(s) {', '.join(missing)} (their rows are NaN)")
+    if extra:
+        notes.append(f"file(s) of node(s) {', '.join(extra)} not in the layout ignored")
     if configs:
         notes.append("configs: " + ", ".join(f"{c}={v}" for c, v in configs.items())
                      + " (conf1 best connected, conf2 worst connected non-degenerate triangle)")
