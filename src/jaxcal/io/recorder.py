@@ -264,15 +264,15 @@ class Recording:
         import h5py
 
         from jaxcal.io import hdf5
+        from jaxcal.io.atomic import atomic_path
 
         ds = self.build_dataset()
         if ds is None:
             return False
         path = Path(path)
-        tmp = path.with_name(f".{path.name}.snapshot.tmp")
-        try:
-            hdf5.write(tmp, ds)
-            with h5py.File(tmp, "a") as f:
+        with atomic_path(path) as tmp:
+            with h5py.File(tmp, "w") as f:
+                hdf5.write_open(f, ds)
                 g = f.create_group("raw")
                 lens = np.fromiter((len(r) for r in self.raw), np.int64, len(self.raw))
                 off = np.zeros(lens.size + 1, np.int64)
@@ -287,16 +287,7 @@ class Recording:
                     placeholder_poses=int(not hasattr(ds, "node_ids")),
                     decoder_stats=json.dumps(self.decoder.stats.as_dict()),
                 )
-            fd = os.open(tmp, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-            os.replace(tmp, path)
-            sync_dir(path)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
+        sync_dir(path)
         return True
 
     def summary(self) -> dict:
