@@ -286,7 +286,7 @@ def test_shell_replug_reinit_then_sigterm_and_refusals(tmp_path):
     assert_one_line_error(run_cli("record", "--port", port, "--protocol", "nlink", "-o", out), "not overwritten")
     assert_one_line_error(run_cli("record", "--port", port, "--protocol", "nlink", "-o", tmp_path / "new.h5",
                                   "--raw-out", out), "not overwritten")
-    assert_one_line_error(run_cli("record", "--replay", out, "-o", out), "is the input")
+    assert_one_line_error(run_cli("record", "--replay", out, "-o", out), "is an input of this run")
     assert out.read_bytes() == before and not (tmp_path / "new.h5.journal").exists()
     assert_one_line_error(second[0], "cannot open serial port")
     assert "lock" in second[0].stderr and not (tmp_path / "second.h5.journal").exists()

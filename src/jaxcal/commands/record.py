@@ -81,6 +81,7 @@ def _check_calibrate(method: str | None) -> None:
 def run(args) -> int:
     import sys
     import time
+    from pathlib import Path
 
     from jaxcal.commands._common import print_json
     from jaxcal.errors import JaxcalError
