@@ -83,12 +83,75 @@ def test_metrics_equal_single_runs_and_evaluate(extra, grid):
     assert len(set(np.round(got["nlpl"], 9))) == pl.n_runs  # every value really ran
 
 
-def test_no_recompilation_across_values(monkeypatch):
-    fn = eqx.filter_jit(eqx.debug.assert_max_traces(S._batched, max_traces=1))
-    monkeypatch.setattr(S, "run_batch", fn)
+@pytest.mark.parametrize("method, range_model", [("pgp", "gaussian"), ("parametric", "mixture")])
+def test_sequential_fast_path_equals_run_pgp_bit_for_bit(method, range_model):
+    """CPU execution: every run is `run_pgp`'s windowed fast path, so the numbers are identical."""
+    import jax
+
+    from jaxcal.mesh import pgp
+    from test_pgp_speed import FINE, mesh
+
+    ds = mesh(k=20, seed=1)
+    fixed = {k: v for k, v in FINE.items() if k != "sigma_r"} | {"range_model": range_model}
+    doc = {
+        "method": method,
+        "batch_size": 3,  # one batch padded with a copy (padding is not run sequentially)
+        "params": fixed,
+        "grid": {"sigma_r": [0.25, 0.3]},
+        "scenarios": [{"file": "x.h5"}],
+    }
+    spec = S.parse_spec(doc)
+    assert S.resolve_execution(spec.execution, "cpu") == "sequential"
+    assert S.resolve_execution(spec.execution, "gpu") == "vmap"
+    pl = S.plan(spec)
+    groups, group_of = S.build_groups([(ds, None)], spec)
+    got = {k: np.full(pl.n_runs, np.nan) for k in S.METRICS}
+    ticks = []
+    batches = S.execute(
+        spec, pl, groups, group_of, np.zeros(pl.n_runs, bool), progress=ticks.append
+    )
+    for idx, vals in batches:
+        for k, v in vals.items():
+            got[k][idx] = v
+    assert sum(ticks) == pl.n_runs == 2
+    windowed = 0
+    for r in range(pl.n_runs):
+        p = {**fixed, "sigma_r": pl.values["sigma_r"][r]}
+        res, _ = run_pgp(ds, p, None, mode=method)
+        ev = evaluate_mesh(res, ds)
+        np.testing.assert_allclose(got["rmse_m"][r], ev["rmse_m"], rtol=1e-12)
+        np.testing.assert_allclose(got["final_rmse_m"][r], ev["final_rmse_m"], rtol=1e-12)
+        have = np.isfinite(res.track_position).all(-1)
+        assert got["availability"][r] == np.delete(have, 0, axis=1).mean()  # a0 is node 0 here
+        # bit for bit: the same chunks of the same programs on the same inputs as run_pgp
+        cfg, prm, inp, lp0, _ = pgp.prepare(ds, pgp.PGPParams(**p), None, method)
+        _, out = pgp.run_chunked(cfg, prm, inp, lp0)
+        windowed += int(out.windowed.sum())
+        truth = groups[0].truth[0]
+        want = jax.tree.map(float, S._reduce_jit(out, prm, truth, groups[0].span_m))
+        assert {k: got[k][r] for k in S.METRICS} == want
+    if method == "pgp":
+        assert windowed > 0  # the fast path really ran
+
+
+@pytest.mark.parametrize("execution", ["vmap", "sequential"])
+def test_no_recompilation_across_values(monkeypatch, execution):
+    from jaxcal.mesh import pgp
+
+    if execution == "vmap":
+        fns = [eqx.filter_jit(eqx.debug.assert_max_traces(S._batched, max_traces=1))]
+        monkeypatch.setattr(S, "run_batch", fns[0])
+    else:  # one run at a time: the filter (dense: one scan) and the metrics compile once
+        fns = [
+            eqx.filter_jit(eqx.debug.assert_max_traces(pgp._filter, max_traces=1)),
+            eqx.filter_jit(eqx.debug.assert_max_traces(S.reduce_metrics, max_traces=1)),
+        ]
+        monkeypatch.setattr(pgp, "run_filter", fns[0])
+        monkeypatch.setattr(S, "_reduce_jit", fns[1])
     doc = {
         "epochs": 5,
         "batch_size": 2,
+        "execution": execution,
         "params": FIXED,
         "grid": {"sigma_r": [0.3, 0.6, 0.9, 1.2, 1.5, 2.0], "sigma_v": [0.2, 0.5]},
         "scenarios": [{"simulate": "small", "config": "conf1", "seeds": [0]}],
@@ -98,7 +161,7 @@ def test_no_recompilation_across_values(monkeypatch):
     groups, group_of = S.build_groups([(simulate("small", 0), "conf1")], spec)
     batches = list(S.execute(spec, pl, groups, group_of, np.zeros(pl.n_runs, bool)))
     assert len(batches) == 6 and sum(b[0].size for b in batches) == 12
-    assert eqx.debug.get_num_traces(fn) == 1
+    assert [eqx.debug.get_num_traces(f) for f in fns] == [1] * len(fns)
 
 
 @pytest.mark.parametrize(

@@ -25,7 +25,15 @@ def run(args) -> int:
     params = load_params_json(args.params) if args.params else {}
     params.update(parse_set(args.set))
     t0 = time.perf_counter()
-    result = calibrate(ds, args.method, params=params, config=args.config)
+    from jaxcal.data import MeshDataset
+    from jaxcal.methods import WITH_PROGRESS
+    from jaxcal.progress import progress_bar, wanted
+
+    # a bar over the epochs of the grid filters (only when stderr is a terminal; off with --json)
+    show = args.method in WITH_PROGRESS and isinstance(ds, MeshDataset) and wanted(not args.json)
+    with progress_bar(ds.n_epochs if show else 0, args.method, "epoch", enabled=show) as bar:
+        result = calibrate(ds, args.method, params=params, config=args.config,
+                           progress=bar.update if show else None)
     elapsed = time.perf_counter() - t0
     hdf5.write(args.output, result)
     import numpy as np
