@@ -254,7 +254,7 @@ def test_run_pgp_progress_counts_epochs_and_changes_nothing():
 
 
 def test_calibrate_cli_shows_an_epoch_bar(tmp_path):
-    """`jaxcal calibrate --method pgp` advances a bar over the epochs (forced on: stderr is a pipe)."""
+    """`jaxcal calibrate --method pgp` advances a bar over the epochs (forced on: stderr a pipe)."""
     from conftest import run_cli
     from jaxcal.io import hdf5
     from test_data import small_mesh

@@ -41,7 +41,7 @@ def get_method(kind: str, name: str):
     return getattr(importlib.import_module(module), func)
 
 
-# methods whose function takes `progress` (a callback called with the epochs done since its last call)
+# methods whose function takes `progress` (called with the epochs done since its last call)
 WITH_PROGRESS = frozenset({"pgp", "parametric"})
 
 
@@ -52,7 +52,7 @@ def calibrate(
     config: str | None = None,
     progress=None,
 ):
-    """Calibrate `dataset` (MeshDataset or TrajectoryDataset) with a registered method; returns a Result.
+    """Calibrate `dataset` (MeshDataset or TrajectoryDataset) with a registered method -> Result.
 
     `progress`: optional callback for the methods in `WITH_PROGRESS` (others ignore it), called with
     the epochs done since its last call."""

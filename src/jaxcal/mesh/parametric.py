@@ -17,7 +17,9 @@ from jaxcal.mesh.pgp import PGPParams, run_pgp
 __all__ = ["calibrate", "PGPParams"]
 
 
-def calibrate(dataset: MeshDataset, params=None, config: str | None = None, progress=None) -> Result:
+def calibrate(
+    dataset: MeshDataset, params=None, config: str | None = None, progress=None
+) -> Result:
     """`--method parametric`: the grid filter with eq. (9) point-estimate likelihoods.
 
     `progress`: optional callback called with the epochs done since its last call."""

@@ -1169,7 +1169,9 @@ def _software() -> str:
         return "jaxcal"
 
 
-def calibrate(dataset: MeshDataset, params=None, config: str | None = None, progress=None) -> Result:
+def calibrate(
+    dataset: MeshDataset, params=None, config: str | None = None, progress=None
+) -> Result:
     """`--method pgp`: the grid-based Bayesian filter with hypothesis likelihoods (eq. 3-14).
 
     `progress`: optional callback called with the epochs done since its last call."""
