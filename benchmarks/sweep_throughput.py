@@ -5,16 +5,20 @@ runs (each `pgp.prepare` + `pgp.run_chunked` + the sweep's metric reduction: wha
 for one calibration, the windowed fast path), then one sweep of the same R runs
 (`sweep.build_groups` + `sweep.execute`, `--execution`, default "auto": "sequential" on CPU).
 Runs differ in sigma_r (R values between 0.2 and 0.6 m). Everything is compiled before timing (one
-warm-up run of each path). Prints one JSON line per (case, R): single_s (the R runs, summed),
-sweep_s, per-run seconds of both, ratio = sweep_s / single_s, metrics_equal (every metric of
-every run identical, bit for bit), loadavg (`os.getloadavg()` when the row finished), device.
+warm-up run of each path). The two are timed alternately `--repeats` times (best of each: on a
+shared machine the load changes between timings). Prints one JSON line per (case, R): single_s
+(the R runs, summed), sweep_s, per-run seconds of both, ratio = sweep_s / single_s,
+metrics_equal (every metric of every run identical, bit for bit), single_cpu_s, sweep_cpu_s and
+cpu_ratio (the same with the process's CPU time, all threads: robust to other jobs on a shared
+machine, where wall times of the same work vary by 2x), loadavg (`os.getloadavg()` when the row
+finished), device.
 
 Data: `data/torgau.h5` (12 nodes, the simulated torgau scenario) when present, else
 `simulate("torgau", 0)`; its first `--epochs` epochs, `--cell` m cells, float32 (as the CLI).
 
 Usage: python benchmarks/sweep_throughput.py [--epochs 100] [--cell 0.5] [--runs 1,4,16]
        [--cases pgp:gaussian,pgp:mixture,parametric:gaussian,parametric:mixture]
-       [--execution auto|sequential|vmap]
+       [--execution auto|sequential|vmap] [--repeats 1]
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ def main() -> None:
     )
     ap.add_argument("--execution", default="auto", choices=("auto", "sequential", "vmap"))
     ap.add_argument("--batch-size", type=int, default=16, help="runs per device in one batch")
+    ap.add_argument("--repeats", type=int, default=1, help="alternated timings, best of each")
     a = ap.parse_args()
 
     import jax
@@ -100,12 +105,16 @@ def main() -> None:
         compile_s = time.perf_counter() - t0
         for r in (int(x) for x in a.runs.split(",")):
             values = np.linspace(0.2, 0.6, r) if r > 1 else np.asarray([0.3])
-            t0 = time.perf_counter()
-            one = [single(v) for v in values]
-            single_s = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            got = sweep(values)
-            sweep_s = time.perf_counter() - t0
+            single_s = sweep_s = single_cpu = sweep_cpu = float("inf")
+            for _ in range(a.repeats):
+                t0, c0 = time.perf_counter(), time.process_time()
+                one = [single(v) for v in values]
+                single_s = min(single_s, time.perf_counter() - t0)
+                single_cpu = min(single_cpu, time.process_time() - c0)
+                t0, c0 = time.perf_counter(), time.process_time()
+                got = sweep(values)
+                sweep_s = min(sweep_s, time.perf_counter() - t0)
+                sweep_cpu = min(sweep_cpu, time.process_time() - c0)
             equal = all(
                 np.float64(got[k][i]).tobytes() == np.float64(one[i][k]).tobytes()
                 or (np.isnan(got[k][i]) and np.isnan(one[i][k]))
@@ -129,7 +138,11 @@ def main() -> None:
                         "single_per_run_s": round(single_s / r, 3),
                         "sweep_per_run_s": round(sweep_s / r, 3),
                         "ratio": round(sweep_s / single_s, 3),
+                        "single_cpu_s": round(single_cpu, 3),
+                        "sweep_cpu_s": round(sweep_cpu, 3),
+                        "cpu_ratio": round(sweep_cpu / single_cpu, 3),
                         "metrics_equal": bool(equal),
+                        "repeats": a.repeats,
                         "loadavg": [round(x, 2) for x in os.getloadavg()],
                         "cpus": os.cpu_count(),
                         "device": f"{dev.platform}:{dev.device_kind}",
