@@ -98,12 +98,14 @@ def test_sequential_fast_path_equals_run_pgp_bit_for_bit(method, range_model):
     from test_pgp_speed import FINE, mesh
 
     ds = mesh(k=20)
-    fixed = {k: v for k, v in FINE.items() if k != "sigma_r"} | {"range_model": range_model}
+    swept = {"sigma_r": [0.3, 0.35], "sigma_v": [0.12, 0.2]}  # runs that take different branches
+    fixed = {k: v for k, v in FINE.items() if k not in swept}
+    fixed |= {"range_model": range_model, "window_small_m": 3.0}  # small, big windows, full grid
     doc = {
         "method": method,
-        "batch_size": 3,  # one batch padded with a copy (padding is not run sequentially)
+        "batch_size": 3,  # the 2nd batch padded with copies (padding is not run sequentially)
         "params": fixed,
-        "grid": {"sigma_r": [0.3, 0.35]},
+        "grid": swept,
         "scenarios": [{"file": "x.h5"}],
     }
     spec = S.parse_spec(doc)
@@ -119,10 +121,10 @@ def test_sequential_fast_path_equals_run_pgp_bit_for_bit(method, range_model):
     for idx, vals in batches:
         for k, v in vals.items():
             got[k][idx] = v
-    assert sum(ticks) == pl.n_runs == 2
+    assert sum(ticks) == pl.n_runs == 4
     windowed = 0
     for r in range(pl.n_runs):
-        p = {**fixed, "sigma_r": pl.values["sigma_r"][r]}
+        p = {**fixed, **{k: pl.values[k][r] for k in swept}}
         res, _ = run_pgp(ds, p, None, mode=method)
         ev = evaluate_mesh(res, ds)
         np.testing.assert_allclose(got["rmse_m"][r], ev["rmse_m"], rtol=1e-12)
@@ -138,6 +140,15 @@ def test_sequential_fast_path_equals_run_pgp_bit_for_bit(method, range_model):
         assert {k: got[k][r] for k in S.METRICS} == want
     if method == "pgp":
         assert windowed > 0  # the fast path really ran
+        # the accelerator execution (vmapped, branch decided per step for the whole batch,
+        # `mesh.lockstep`) equals it up to rounding
+        vm = S.parse_spec({**doc, "execution": "vmap"})
+        alt = {k: np.full(pl.n_runs, np.nan) for k in S.METRICS}
+        for idx, vals in S.execute(vm, pl, groups, group_of, np.zeros(pl.n_runs, bool)):
+            for k, v in vals.items():
+                alt[k][idx] = v
+        for k in S.METRICS:
+            np.testing.assert_allclose(alt[k], got[k], rtol=1e-9, err_msg=k)
 
 
 @pytest.mark.parametrize("execution", ["vmap", "sequential"])

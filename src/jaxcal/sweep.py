@@ -346,6 +346,16 @@ def _batched(cfg, prm, inp, logpost0, truth, span_m):
 
 # One compilation per (group config, batch shape): parameter values and datasets are array data.
 run_batch = eqx.filter_jit(_batched)
+_reduce_batch = eqx.filter_jit(jax.vmap(reduce_metrics, in_axes=(0, 0, 0, None)))
+
+
+def run_batch_window(cfg, prm, inp, logpost0, truth, span_m) -> dict[str, Array]:
+    """`run_batch` on the windowed fast path (`mesh.lockstep`): the host decides each step's
+    branch for the whole batch, so runs pay the full-grid epoch only when one of them needs it."""
+    from jaxcal.mesh.lockstep import run_lockstep
+
+    out = run_lockstep(cfg, prm, inp, logpost0)
+    return _reduce_batch(out, prm, truth, span_m)
 _reduce_jit = eqx.filter_jit(reduce_metrics)
 
 
@@ -442,7 +452,10 @@ def execute(
             )
             if execution == "sequential":
                 out = _gather(_run_sequential(g, host, todo.size, mesh, spec.batch_size, progress))
-            else:
+            elif g.cfg.window and not g.cfg.n_snap and jax.process_count() == 1:
+                out = _gather(run_batch_window(g.cfg, *_shard(host, mesh), g.span_m))
+            else:  # one vmapped scan (both branches of every cond): the one-scan likelihoods,
+                # and several processes (the lockstep driver reads per-run state on the host)
                 out = _gather(run_batch(g.cfg, *_shard(host, mesh), g.span_m))
                 if progress is not None:
                     progress(int(todo.size))
