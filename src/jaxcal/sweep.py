@@ -25,10 +25,14 @@ Execution (`SweepSpec.execution`, `jaxcal sweep --execution`), chosen per backen
   bit-for-bit those of `run_pgp`. Several local devices run their runs in one thread each.
   Under `vmap` a `cond` whose predicate differs between runs evaluates both branches, i.e. every
   epoch of every run would also pay the full-grid epoch: 10-30x a single run on CPU.
-- "vmap" (auto on GPU/TPU): one jitted, vmapped filter per batch (the last one padded with copies
-  of a run) sharded over the devices: wide batches keep an accelerator busy, at the price of
-  evaluating both branches of the fast path's conds (`benchmarks/sweep_batching.py` measures
-  runs/s against batch size). Same metrics up to rounding.
+- "vmap" (auto on GPU/TPU): vmapped batches (the last one padded with copies of a run) sharded
+  over the devices: wide batches keep an accelerator busy. On the windowed fast path the batch
+  runs in lockstep chunks (`mesh.lockstep`): the host decides each step's branch for the whole
+  batch (a window-only chunk for the runs whose windows hold, a full-grid epoch only for the runs
+  that need one), so runs do not pay the full grid at every epoch. The one-scan likelihoods
+  ("direct", "dense") and multi-process sweeps run one vmapped `pgp._filter` per batch (both
+  branches of every cond). Same metrics as "sequential" up to rounding;
+  `benchmarks/sweep_batching.py` measures runs/s against batch size.
 
 Metrics per run (`METRICS`, all in the configuration frame, a0 excluded): `rmse_m` (every localised
 epoch estimate, as `jaxcal evaluate`), `final_rmse_m` (the final positions), `availability` (share
