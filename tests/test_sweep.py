@@ -189,6 +189,7 @@ def test_no_recompilation_across_values(monkeypatch, execution):
         ({"grid": {"sigma_r": [1.0]}, "scenarios": []}, "scenarios"),
         ({"scenarios": [{"simulate": "small", "file": "x.h5"}]}, "exactly one"),
         ({"colour": 1, "scenarios": [{"simulate": "small"}]}, "unknown"),
+        ({"execution": "fast", "scenarios": [{"simulate": "small"}]}, "execution"),
         (
             {
                 "params": {"sigma_r": 1.0},
