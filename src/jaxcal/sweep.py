@@ -456,41 +456,25 @@ def execute(
             )
             if execution == "sequential":
                 out = _gather(_run_sequential(g, host, todo.size, mesh, spec.batch_size, progress))
-            elif g.cfg.window and not g.cfg.n_snap and jax.process_count() == 1:
-                out = _gather(run_batch_window(g.cfg, *_shard(host, mesh), g.span_m))
-            else:  # one vmapped scan (both branches of every cond): the one-scan likelihoods,
-                # and several processes (the lockstep driver reads per-run state on the host)
+            elif g.cfg.window and not g.cfg.n_snap:  # lockstep chunks, one driver per device
+                out = _gather(_run_lockstep(g, host, mesh, spec.batch_size))
+            else:  # the one-scan likelihoods: one vmapped scan (both branches of every cond)
                 out = _gather(run_batch(g.cfg, *_shard(host, mesh), g.span_m))
                 if progress is not None:
                     progress(int(todo.size))
             yield todo, {k: np.asarray(v, np.float64)[: todo.size] for k, v in out.items()}
 
 
-def _run_sequential(g: Group, host, n_real: int, mesh, per: int, progress) -> dict:
-    """The "sequential" execution of one batch: each of this process's devices runs its rows
-    (`per` of them, row i on device i // per) one by one with `run_single`; rows past `n_real`
-    (padding) are not run (NaN). Returns the metrics as arrays sharded like the batch."""
+def _per_device(mesh, per: int, work) -> dict:
+    """`work(j, device)` -> metrics (per,) for each of this process's devices (one thread each
+    when several), assembled as arrays sharded like the batch (row i on device i // per)."""
     from jax.sharding import NamedSharding, PartitionSpec
 
     devs = list(mesh.devices.flat)
     mine = [(j, d) for j, d in enumerate(devs) if d.process_index == jax.process_index()]
-    dtype = host[2].dtype
-
-    def work(j, dev):
-        vals = {k: np.full(per, np.nan, dtype) for k in METRICS}
-        with jax.default_device(dev):
-            for i in range(j * per, min((j + 1) * per, n_real)):
-                row = jax.device_put(jax.tree.map(lambda a, i=i: a[i], host), dev)
-                m = run_single(g.cfg, *row, g.span_m)
-                for k in METRICS:
-                    vals[k][i - j * per] = np.asarray(m[k])
-                if progress is not None:
-                    progress(1)
-        return vals
-
     if len(mine) == 1:
         parts = [work(*mine[0])]
-    else:  # one thread per local device: the runtime releases the GIL while a device computes
+    else:  # the runtime releases the GIL while a device computes
         from concurrent.futures import ThreadPoolExecutor
 
         with ThreadPoolExecutor(len(mine)) as pool:
@@ -505,6 +489,39 @@ def _run_sequential(g: Group, host, n_real: int, mesh, per: int, progress) -> di
         )
         for k in METRICS
     }
+
+
+def _run_lockstep(g: Group, host, mesh, per: int) -> dict:
+    """The "vmap" execution on the windowed fast path: each of this process's devices runs its
+    `per` rows as one vmapped lockstep batch (`run_batch_window`)."""
+
+    def work(j, dev):
+        rows = jax.device_put(jax.tree.map(lambda a: a[j * per : (j + 1) * per], host), dev)
+        m = run_batch_window(g.cfg, *rows, g.span_m)
+        return {k: np.asarray(m[k]) for k in METRICS}
+
+    return _per_device(mesh, per, work)
+
+
+def _run_sequential(g: Group, host, n_real: int, mesh, per: int, progress) -> dict:
+    """The "sequential" execution of one batch: each of this process's devices runs its rows
+    (`per` of them, row i on device i // per) one by one with `run_single`; rows past `n_real`
+    (padding) are not run (NaN)."""
+    dtype = host[2].dtype
+
+    def work(j, dev):
+        vals = {k: np.full(per, np.nan, dtype) for k in METRICS}
+        with jax.default_device(dev):
+            for i in range(j * per, min((j + 1) * per, n_real)):
+                row = jax.device_put(jax.tree.map(lambda a, i=i: a[i], host), dev)
+                m = run_single(g.cfg, *row, g.span_m)
+                for k in METRICS:
+                    vals[k][i - j * per] = np.asarray(m[k])
+                if progress is not None:
+                    progress(1)
+        return vals
+
+    return _per_device(mesh, per, work)
 
 
 def simulate_or_raise(sc: Scenario, seed: int) -> MeshDataset:

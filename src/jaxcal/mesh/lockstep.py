@@ -52,7 +52,7 @@ def _window_step(cfg, prm, inp, st, buf, k, ready, n_ep: int, chunk: int):
     st2, out, done = pgp._scan_windows(cfg, prm, part, small, valid, k)
     st2 = dataclasses.replace(st2, logpost=st.logpost)
     # rows past `done` are rewritten by the steps that compute them
-    return st2, _write(buf, out, k, chunk), k + done
+    return st2, _write(buf, out, k, chunk), k + done.astype(k.dtype)
 
 
 def _full_step(cfg, prm, inp, st, buf, k, active):
@@ -115,7 +115,8 @@ def run_lockstep(
 
     Args:
         cfg: the common static config; needs `cfg.window` (the fast path) and no snapshots.
-        prm, inp, logpost0: batched (B, ...) as for `jax.vmap(pgp._filter)`.
+        prm, inp, logpost0: batched (B, ...) as for `jax.vmap(pgp._filter)`; everything runs on
+            the device of `logpost0` (the sweep runs one driver per device).
         chunk: epochs per windowed step.
 
     Returns:
@@ -124,9 +125,13 @@ def run_lockstep(
     if not cfg.window or cfg.n_snap:
         raise ValueError("run_lockstep needs the windowed fast path and no snapshots")
     n_ep = int(inp.z.shape[1])
+    # every array on the device (and sharding) of `logpost0`: the step programs then see the same
+    # placements at every call and compile once
+    put = lambda x: jax.device_put(x, logpost0.sharding)  # noqa: E731
+    prm, inp = put(prm), put(inp)
     st, buf, pinp = _init(cfg, logpost0, inp, n_ep, chunk)
     b, n = logpost0.shape[:2]
-    k = jnp.zeros((b,), jnp.int32)
+    k = put(np.zeros((b,), np.int32))
     need = np.asarray(inp.need)
     log_cells = np.log(np.maximum(np.asarray(inp.mask).reshape(b, n, -1).sum(-1), 1))
     while True:
@@ -139,10 +144,10 @@ def run_lockstep(
         ready = left & loc.all(-1) & held
         rest = left & ~ready
         if ready.any():
-            st, buf, k = _window_batch(cfg, prm, pinp, st, buf, k, jnp.asarray(ready), n_ep, chunk)
+            st, buf, k = _window_batch(cfg, prm, pinp, st, buf, k, put(ready), n_ep, chunk)
             # a run stopped inside its chunk (windows failed): one full-grid epoch next, as alone
             moved = np.asarray(k) - kh
             rest = rest | (ready & (moved < np.minimum(chunk, n_ep - kh)))
         if rest.any():
-            st, buf, k = _full_batch(cfg, prm, pinp, st, buf, k, jnp.asarray(rest))
+            st, buf, k = _full_batch(cfg, prm, pinp, st, buf, k, put(rest))
     return jax.tree.map(lambda a: a[:, :n_ep], buf)
