@@ -9,7 +9,8 @@ For each cell size in `--cells` (default 0.5, 0.25 m) and batch size B in `--bat
 torgau dataset (`data/torgau.h5`, else `simulate("torgau", 0)`), first `--epochs` epochs (default
 2000), with `--execution` (default "vmap": the accelerator execution of `jaxcal.sweep`, one jitted
 vmapped filter per batch). The first batch compiles (compile_s, measured as first call minus
-best); then the best of `--repeats` batches, `jax.block_until_ready`. One JSON line per (cell, B):
+best; the lockstep driver's window program compiles at the first batch that reaches a windowed
+step, so keep `--repeats` >= 2); then the best of `--repeats` batches. One JSON line per (cell, B):
 runs_per_s = B / best_batch_s, and for reference `single_runs_per_s`: one warm single fast run
 (`pgp.run_chunked`, as `run_pgp`; the "sequential" execution's per-run cost) measured once per
 cell size in the same process. A batch that fails (e.g. out of device memory) prints a line with

@@ -89,7 +89,9 @@ def test_metrics_equal_single_runs_and_evaluate(extra, grid):
     assert len(set(np.round(got["nlpl"], 9))) == pl.n_runs  # every value really ran
 
 
-@pytest.mark.parametrize("method, range_model", [("pgp", "gaussian"), ("parametric", "mixture")])
+# one case: the compilations of the fast path dominate (parametric and the mixture kernel take the
+# same execution path; their sweep metrics are checked against run_pgp in the tests above)
+@pytest.mark.parametrize("method, range_model", [("pgp", "gaussian")])
 def test_sequential_fast_path_equals_run_pgp_bit_for_bit(method, range_model):
     """CPU execution: every run is `run_pgp`'s windowed fast path, so the numbers are identical."""
     import jax
