@@ -1,17 +1,24 @@
-"""Benchmark: sweep throughput (runs per second) of the vmapped, sharded filter on 1, 2, 4 devices.
+"""Benchmark: a sweep of R runs against the same R runs one by one, in one process.
 
-Each device count runs in its own subprocess, because virtual CPU devices
-(`XLA_FLAGS=--xla_force_host_platform_device_count=D`) must be set before JAX initialises; on a
-machine with accelerators, `--real` uses the first D real devices instead. Per device count: one
-JSON line with the device kind, the batch (runs per device x devices), the compile time (first
-batch, including compilation) and the best of `--repeats` timed batches after it
-(`jax.block_until_ready`), as runs per second. The workload: simulated `small` (6 nodes) or
-`torgau` (12 nodes) scenario, first `--epochs` epochs, `--cell` m cells, dense likelihood, sigma_r
-varying over the batch. Note: virtual CPU devices share the host's cores, so on a 2-core machine
-more devices cannot be faster; the figure shows the overhead of sharding, not a speed-up.
+For every case (method x range model) and R in `--runs` (default 1, 4, 16): R single warm fast
+runs (each `pgp.prepare` + `pgp.run_chunked` + the sweep's metric reduction: what `run_pgp` does
+for one calibration, the windowed fast path), then one sweep of the same R runs
+(`sweep.build_groups` + `sweep.execute`, `--execution`, default "auto": "sequential" on CPU).
+Runs differ in sigma_r (R values between 0.2 and 0.6 m). Everything is compiled before timing (one
+warm-up run of each path). The two are timed alternately `--repeats` times (best of each: on a
+shared machine the load changes between timings). Prints one JSON line per (case, R): single_s
+(the R runs, summed), sweep_s, per-run seconds of both, ratio = sweep_s / single_s,
+metrics_equal (every metric of every run identical, bit for bit), single_cpu_s, sweep_cpu_s and
+cpu_ratio (the same with the process's CPU time, all threads: robust to other jobs on a shared
+machine, where wall times of the same work vary by 2x), loadavg (`os.getloadavg()` when the row
+finished), device.
 
-Usage: python benchmarks/sweep_throughput.py [--scenario small] [--epochs 50] [--cell 2.0]
-       [--per-device 4] [--devices 1,2,4] [--repeats 3] [--real]
+Data: `data/torgau.h5` (12 nodes, the simulated torgau scenario) when present, else
+`simulate("torgau", 0)`; its first `--epochs` epochs, `--cell` m cells, float32 (as the CLI).
+
+Usage: python benchmarks/sweep_throughput.py [--epochs 100] [--cell 0.5] [--runs 1,4,16]
+       [--cases pgp:gaussian,pgp:mixture,parametric:gaussian,parametric:mixture]
+       [--execution auto|sequential|vmap] [--repeats 1]
 """
 
 from __future__ import annotations
@@ -19,118 +26,130 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
-import sys
 import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
-def worker(a) -> None:
-    import jax
-    import numpy as np
-
-    from jaxcal import sweep as S
+def dataset():
     from jaxcal.sim.mesh import simulate
 
-    devs = jax.devices()[: a.n]
-    spec = S.parse_spec(
-        {
-            "epochs": a.epochs,
-            "batch_size": a.per_device,
-            "params": {
-                "cell_m": a.cell,
-                "max_hyp": 4,
-                "top_k": 8,
-                "min_refs": 2,
-                "likelihood": "dense",
-            },
-            "grid": {"sigma_r": list(np.linspace(0.2, 2.0, a.per_device * a.n * (a.repeats + 1)))},
-            "scenarios": [{"simulate": a.scenario, "config": "conf1", "seeds": [0]}],
-        }
-    )
-    pl = S.plan(spec)
-    groups, group_of = S.build_groups([(simulate(a.scenario, 0), "conf1")], spec)
-    it = S.execute(spec, pl, groups, group_of, np.zeros(pl.n_runs, bool), devices=devs)
-    t0 = time.perf_counter()
-    idx, _ = next(it)  # compile + first batch (metrics are host arrays: the batch has finished)
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(a.repeats):
-        t0 = time.perf_counter()
-        idx, _ = next(it)
-        times.append(time.perf_counter() - t0)
-    best = min(times)
-    print(
-        json.dumps(
-            {
-                "bench": "sweep_throughput",
-                "devices": len(devs),
-                "device_kind": devs[0].device_kind,
-                "platform": devs[0].platform,
-                "scenario": a.scenario,
-                "epochs": a.epochs,
-                "cell_m": a.cell,
-                "grid_side": groups[0].cfg.grid.n_side,
-                "batch": int(idx.size),
-                "per_device": a.per_device,
-                "first_batch_s": first,
-                "best_batch_s": best,
-                "runs_per_s": idx.size / best,
-                "repeats": a.repeats,
-                "dtype": str(np.asarray(groups[0].base.sigma_r).dtype),
-            }
-        ),
-        flush=True,
-    )
+    path = ROOT / "data" / "torgau.h5"
+    if path.exists():
+        from jaxcal.io import hdf5
+
+        return hdf5.read(path), "conf1"
+    return simulate("torgau", 0), "conf1"
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenario", default="small")
-    ap.add_argument("--epochs", type=int, default=50)
-    ap.add_argument("--cell", type=float, default=2.0)
-    ap.add_argument("--per-device", type=int, default=4)
-    ap.add_argument("--devices", default="1,2,4")
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--real", action="store_true", help="use real devices (no virtual CPU devices)")
-    ap.add_argument("--worker", type=int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--epochs", type=int, default=100)
+    ap.add_argument("--cell", type=float, default=0.5)
+    ap.add_argument("--runs", default="1,4,16")
+    ap.add_argument(
+        "--cases", default="pgp:gaussian,pgp:mixture,parametric:gaussian,parametric:mixture"
+    )
+    ap.add_argument("--execution", default="auto", choices=("auto", "sequential", "vmap"))
+    ap.add_argument("--batch-size", type=int, default=16, help="runs per device in one batch")
+    ap.add_argument("--repeats", type=int, default=1, help="alternated timings, best of each")
     a = ap.parse_args()
-    if a.worker is not None:
-        a.n = a.worker
-        worker(a)
-        return
-    for n in (int(x) for x in a.devices.split(",")):
-        env = dict(os.environ)
-        if not a.real:
-            env["JAX_PLATFORMS"] = "cpu"
-            env["XLA_FLAGS"] = (
-                env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={n}"
-            ).strip()
-        args = [
-            sys.executable,
-            __file__,
-            "--worker",
-            str(n),
-            "--scenario",
-            a.scenario,
-            "--epochs",
-            str(a.epochs),
-            "--cell",
-            str(a.cell),
-            "--per-device",
-            str(a.per_device),
-            "--repeats",
-            str(a.repeats),
-        ]
-        proc = subprocess.run(args, env=env, capture_output=True, text=True)
-        if proc.returncode != 0:
+
+    import jax
+    import numpy as np
+
+    from jaxcal import sweep as S
+    from jaxcal.mesh import pgp
+    from jaxcal.params import with_overrides
+    from jaxcal.tune import grid_span_m, truth_in_filter_order, window
+
+    full, config = dataset()
+    ds = window(full, a.epochs)
+    dev = jax.devices()[0]
+    for case in a.cases.split(","):
+        method, range_model = case.split(":")
+        fixed = {"cell_m": a.cell, "range_model": range_model}
+
+        def single(sigma_r, fixed=fixed, method=method):
+            """One calibration's compute on the fast path, reduced to the sweep's metrics."""
+            p = with_overrides(pgp.PGPParams(), {**fixed, "sigma_r": float(sigma_r)})
+            cfg, prm, inp, lp0, order = pgp.prepare(ds, p, config, method)
+            _, out = pgp.run_chunked(cfg, prm, inp, lp0)
+            truth = jax.numpy.asarray(truth_in_filter_order(ds, config, order), lp0.dtype)
+            m = S._reduce_jit(out, prm, truth, grid_span_m(cfg))
+            return {k: float(v) for k, v in m.items()}
+
+        def sweep(values, fixed=fixed, method=method):
+            spec = S.parse_spec(
+                {
+                    "method": method,
+                    "batch_size": a.batch_size,
+                    "execution": a.execution,
+                    "params": fixed,
+                    "grid": {"sigma_r": [float(v) for v in values]},
+                    "scenarios": [{"file": "torgau", "config": config}],
+                }
+            )
+            pl = S.plan(spec)
+            groups, group_of = S.build_groups([(ds, config)], spec)
+            got = {k: np.full(pl.n_runs, np.nan) for k in S.METRICS}
+            for idx, vals in S.execute(spec, pl, groups, group_of, np.zeros(pl.n_runs, bool)):
+                for k, v in vals.items():
+                    got[k][idx] = v
+            return got
+
+        t0 = time.perf_counter()
+        single(0.3)  # compile both paths before timing
+        sweep([0.3])
+        compile_s = time.perf_counter() - t0
+        for r in (int(x) for x in a.runs.split(",")):
+            values = np.linspace(0.2, 0.6, r) if r > 1 else np.asarray([0.3])
+            single_s = sweep_s = single_cpu = sweep_cpu = float("inf")
+            for _ in range(a.repeats):
+                t0, c0 = time.perf_counter(), time.process_time()
+                one = [single(v) for v in values]
+                single_s = min(single_s, time.perf_counter() - t0)
+                single_cpu = min(single_cpu, time.process_time() - c0)
+                t0, c0 = time.perf_counter(), time.process_time()
+                got = sweep(values)
+                sweep_s = min(sweep_s, time.perf_counter() - t0)
+                sweep_cpu = min(sweep_cpu, time.process_time() - c0)
+            equal = all(
+                np.float64(got[k][i]).tobytes() == np.float64(one[i][k]).tobytes()
+                or (np.isnan(got[k][i]) and np.isnan(one[i][k]))
+                for i in range(r)
+                for k in S.METRICS
+            )
             print(
                 json.dumps(
-                    {"bench": "sweep_throughput", "devices": n, "error": proc.stderr.strip()[-300:]}
-                )
+                    {
+                        "bench": "sweep_throughput",
+                        "method": method,
+                        "range_model": range_model,
+                        "runs": r,
+                        "epochs": ds.n_epochs,
+                        "nodes": ds.n_nodes,
+                        "cell_m": a.cell,
+                        "execution": S.resolve_execution(a.execution),
+                        "compile_s": round(compile_s, 2),
+                        "single_s": round(single_s, 3),
+                        "sweep_s": round(sweep_s, 3),
+                        "single_per_run_s": round(single_s / r, 3),
+                        "sweep_per_run_s": round(sweep_s / r, 3),
+                        "ratio": round(sweep_s / single_s, 3),
+                        "single_cpu_s": round(single_cpu, 3),
+                        "sweep_cpu_s": round(sweep_cpu, 3),
+                        "cpu_ratio": round(sweep_cpu / single_cpu, 3),
+                        "metrics_equal": bool(equal),
+                        "repeats": a.repeats,
+                        "loadavg": [round(x, 2) for x in os.getloadavg()],
+                        "cpus": os.cpu_count(),
+                        "device": f"{dev.platform}:{dev.device_kind}",
+                    }
+                ),
+                flush=True,
             )
-        else:
-            sys.stdout.write(proc.stdout)
-        sys.stdout.flush()
 
 
 if __name__ == "__main__":

@@ -221,3 +221,50 @@ def test_ring_loglik_equals_node_loglik(p_out, mixture):
     far = F.ring_loglik(org, w, grid, pos, lw, np.full(n, 0.02), z + 3.0, use, p_out, nlos)[1]
     if p_out > 0 or not mixture:
         assert bool(far) == (p_out > 0)
+
+
+def _same_run(a, b):
+    (st_a, out_a), (st_b, out_b) = a, b
+    for x, y in zip(jax.tree.leaves((st_a, out_a)), jax.tree.leaves((st_b, out_b)), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+@pytest.mark.parametrize("likelihood, mode", [("direct", "pgp"), ("dense", "parametric")])
+def test_segmented_scan_equals_one_scan_bit_for_bit(likelihood, mode):
+    """`run_segmented` (the scan in host segments, for progress) is `run_filter`, bit for bit."""
+    ds = mesh(k=15, seed=2)
+    p = PGPParams(**{**FINE, "cell_m": 0.5, "likelihood": likelihood})
+    cfg, prm, inp, lp0, _ = prepare(ds, p, None, mode)
+    ticks = []
+    seg = pgp.run_segmented(cfg, prm, inp, lp0, segment=6, progress=ticks.append)
+    assert ticks == [6, 6, 3]
+    _same_run(seg, pgp.run_filter(cfg, prm, inp, lp0))
+
+
+def test_run_pgp_progress_counts_epochs_and_changes_nothing():
+    """The fast path reports its chunks; a progress callback changes no number."""
+    ds = mesh(k=22, jump=(12, 4, 0.9))
+    p = {**FINE, "likelihood": "window"}
+    ticks = []
+    res, info = run_pgp(ds, p, progress=ticks.append)
+    ref, ref_info = run_pgp(ds, p)
+    assert sum(ticks) == 22 and len(ticks) > 1
+    np.testing.assert_array_equal(res.track_position, ref.track_position)
+    np.testing.assert_array_equal(info.posterior, ref_info.posterior)
+
+
+def test_calibrate_cli_shows_an_epoch_bar(tmp_path):
+    """`jaxcal calibrate --method pgp` advances a bar over the epochs (forced on: stderr a pipe)."""
+    from conftest import run_cli
+    from jaxcal.io import hdf5
+    from test_data import small_mesh
+
+    src = hdf5.write(tmp_path / "m.h5", small_mesh())
+    out = tmp_path / "r.h5"
+    proc = run_cli(
+        "calibrate", src, "--method", "pgp", "-o", out, "--set", "cell_m=1.0",
+        "--set", "likelihood=dense", env={"JAXCAL_PROGRESS": "1"},
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "/4 [" in proc.stderr and "epoch" in proc.stderr, proc.stderr
+    assert "positions estimated" in proc.stdout

@@ -63,10 +63,16 @@ def test_metrics_equal_single_runs_and_evaluate(extra, grid):
     pl = S.plan(spec)
     ds = simulate("small", 3)
     groups, group_of = S.build_groups([(ds, "conf1")], spec)
-    got = {k: np.full(pl.n_runs, np.nan) for k in S.METRICS}
-    for idx, vals in S.execute(spec, pl, groups, group_of, np.zeros(pl.n_runs, bool)):
-        for k, v in vals.items():
-            got[k][idx] = v
+    by = {}
+    for execution in ("sequential", "vmap"):
+        sp = S.parse_spec({**doc, "execution": execution})
+        by[execution] = {k: np.full(pl.n_runs, np.nan) for k in S.METRICS}
+        for idx, vals in S.execute(sp, pl, groups, group_of, np.zeros(pl.n_runs, bool)):
+            for k, v in vals.items():
+                by[execution][k][idx] = v
+    got = by["sequential"]
+    for k in S.METRICS:  # one vmapped program against one program per run: rounding only
+        np.testing.assert_allclose(by["vmap"][k], got[k], rtol=1e-9, err_msg=k)
     from jaxcal.tune import window
 
     w = window(ds, 12)
@@ -83,12 +89,88 @@ def test_metrics_equal_single_runs_and_evaluate(extra, grid):
     assert len(set(np.round(got["nlpl"], 9))) == pl.n_runs  # every value really ran
 
 
-def test_no_recompilation_across_values(monkeypatch):
-    fn = eqx.filter_jit(eqx.debug.assert_max_traces(S._batched, max_traces=1))
-    monkeypatch.setattr(S, "run_batch", fn)
+# one case: the compilations of the fast path dominate (parametric and the mixture kernel take the
+# same execution path; their sweep metrics are checked against run_pgp in the tests above)
+@pytest.mark.parametrize("method, range_model", [("pgp", "gaussian")])
+def test_sequential_fast_path_equals_run_pgp_bit_for_bit(method, range_model):
+    """CPU execution: every run is `run_pgp`'s windowed fast path, so the numbers are identical."""
+    import jax
+
+    from jaxcal.mesh import pgp
+    from test_pgp_speed import FINE, mesh
+
+    ds = mesh(k=20)
+    swept = {"sigma_r": [0.3, 0.35], "sigma_v": [0.12, 0.2]}  # runs that take different branches
+    fixed = {k: v for k, v in FINE.items() if k not in swept}
+    fixed |= {"range_model": range_model, "window_small_m": 3.0}  # small, big windows, full grid
+    doc = {
+        "method": method,
+        "batch_size": 3,  # the 2nd batch padded with copies (padding is not run sequentially)
+        "params": fixed,
+        "grid": swept,
+        "scenarios": [{"file": "x.h5"}],
+    }
+    spec = S.parse_spec(doc)
+    assert S.resolve_execution(spec.execution, "cpu") == "sequential"
+    assert S.resolve_execution(spec.execution, "gpu") == "vmap"
+    pl = S.plan(spec)
+    groups, group_of = S.build_groups([(ds, None)], spec)
+    got = {k: np.full(pl.n_runs, np.nan) for k in S.METRICS}
+    ticks = []
+    batches = S.execute(
+        spec, pl, groups, group_of, np.zeros(pl.n_runs, bool), progress=ticks.append
+    )
+    for idx, vals in batches:
+        for k, v in vals.items():
+            got[k][idx] = v
+    assert sum(ticks) == pl.n_runs == 4
+    windowed = 0
+    for r in range(pl.n_runs):
+        p = {**fixed, **{k: pl.values[k][r] for k in swept}}
+        res, _ = run_pgp(ds, p, None, mode=method)
+        ev = evaluate_mesh(res, ds)
+        np.testing.assert_allclose(got["rmse_m"][r], ev["rmse_m"], rtol=1e-12)
+        np.testing.assert_allclose(got["final_rmse_m"][r], ev["final_rmse_m"], rtol=1e-12)
+        have = np.isfinite(res.track_position).all(-1)
+        assert got["availability"][r] == np.delete(have, 0, axis=1).mean()  # a0 is node 0 here
+        # bit for bit: the same chunks of the same programs on the same inputs as run_pgp
+        cfg, prm, inp, lp0, _ = pgp.prepare(ds, pgp.PGPParams(**p), None, method)
+        _, out = pgp.run_chunked(cfg, prm, inp, lp0)
+        windowed += int(out.windowed.sum())
+        truth = groups[0].truth[0]
+        want = jax.tree.map(float, S._reduce_jit(out, prm, truth, groups[0].span_m))
+        assert {k: got[k][r] for k in S.METRICS} == want
+    if method == "pgp":
+        assert windowed > 0  # the fast path really ran
+        # the accelerator execution (vmapped, branch decided per step for the whole batch,
+        # `mesh.lockstep`) equals it up to rounding
+        vm = S.parse_spec({**doc, "execution": "vmap"})
+        alt = {k: np.full(pl.n_runs, np.nan) for k in S.METRICS}
+        for idx, vals in S.execute(vm, pl, groups, group_of, np.zeros(pl.n_runs, bool)):
+            for k, v in vals.items():
+                alt[k][idx] = v
+        for k in S.METRICS:
+            np.testing.assert_allclose(alt[k], got[k], rtol=1e-9, err_msg=k)
+
+
+@pytest.mark.parametrize("execution", ["vmap", "sequential"])
+def test_no_recompilation_across_values(monkeypatch, execution):
+    from jaxcal.mesh import pgp
+
+    if execution == "vmap":
+        fns = [eqx.filter_jit(eqx.debug.assert_max_traces(S._batched, max_traces=1))]
+        monkeypatch.setattr(S, "run_batch", fns[0])
+    else:  # one run at a time: the filter (dense: one scan) and the metrics compile once
+        fns = [
+            eqx.filter_jit(eqx.debug.assert_max_traces(pgp._filter, max_traces=1)),
+            eqx.filter_jit(eqx.debug.assert_max_traces(S.reduce_metrics, max_traces=1)),
+        ]
+        monkeypatch.setattr(pgp, "run_filter", fns[0])
+        monkeypatch.setattr(S, "_reduce_jit", fns[1])
     doc = {
         "epochs": 5,
         "batch_size": 2,
+        "execution": execution,
         "params": FIXED,
         "grid": {"sigma_r": [0.3, 0.6, 0.9, 1.2, 1.5, 2.0], "sigma_v": [0.2, 0.5]},
         "scenarios": [{"simulate": "small", "config": "conf1", "seeds": [0]}],
@@ -98,7 +180,7 @@ def test_no_recompilation_across_values(monkeypatch):
     groups, group_of = S.build_groups([(simulate("small", 0), "conf1")], spec)
     batches = list(S.execute(spec, pl, groups, group_of, np.zeros(pl.n_runs, bool)))
     assert len(batches) == 6 and sum(b[0].size for b in batches) == 12
-    assert eqx.debug.get_num_traces(fn) == 1
+    assert [eqx.debug.get_num_traces(f) for f in fns] == [1] * len(fns)
 
 
 @pytest.mark.parametrize(
@@ -109,6 +191,7 @@ def test_no_recompilation_across_values(monkeypatch):
         ({"grid": {"sigma_r": [1.0]}, "scenarios": []}, "scenarios"),
         ({"scenarios": [{"simulate": "small", "file": "x.h5"}]}, "exactly one"),
         ({"colour": 1, "scenarios": [{"simulate": "small"}]}, "unknown"),
+        ({"execution": "fast", "scenarios": [{"simulate": "small"}]}, "execution"),
         (
             {
                 "params": {"sigma_r": 1.0},
@@ -184,12 +267,17 @@ def test_kill_and_resume_equals_uninterrupted(reference, tmp_path):
     assert 2 <= done.sum() < N_RUNS, done
     n_done = int(done.sum())
     np.testing.assert_array_equal(np.isnan(part["nlpl"]), ~done)
-    res = run_cli("sweep", spec, "-o", out, "--json", env=_env(spec.parent))
+    # the progress bar (forced on: stderr is a pipe here) counts the runs left; stdout stays JSON
+    res = run_cli("sweep", spec, "-o", out, "--json", env=_env(spec.parent, JAXCAL_PROGRESS="1"))
     assert res.returncode == 0, res.stderr
     import json
 
     summary = json.loads(res.stdout)
     assert summary["computed"] == N_RUNS - n_done and summary["resumed"] == n_done
+    left = N_RUNS - n_done
+    import re
+
+    assert re.search(rf"\b[1-9]\d*/{left} \[", res.stderr) and "run" in res.stderr, res.stderr
     runs, metrics, done = _metrics(out)
     assert done.all()
     _same(metrics, ref)
@@ -212,10 +300,12 @@ def test_four_virtual_devices_equal_one(reference, tmp_path):
         "-o",
         out,
         "--json",
+        "--quiet",
         env=_env(spec.parent, XLA_FLAGS="--xla_force_host_platform_device_count=4"),
     )
     assert proc.returncode == 0, proc.stderr
     assert '"devices": 4' in proc.stdout
+    assert "runs/s" not in proc.stderr and "run/s" not in proc.stderr  # --quiet: no progress
     _same(_metrics(out)[1], ref)
 
 

@@ -66,10 +66,25 @@ def get_method(kind: str, name: str):
     return getattr(importlib.import_module(module), func)
 
 
-def calibrate(dataset, method: str, params: Mapping[str, Any] | None = None, config: str | None = None):
-    """Calibrate `dataset` (MeshDataset or TrajectoryDataset) with a registered method; returns a Result."""
+# methods whose function takes `progress` (called with the epochs done since its last call)
+WITH_PROGRESS = frozenset({"pgp", "parametric"})
+
+
+def calibrate(
+    dataset,
+    method: str,
+    params: Mapping[str, Any] | None = None,
+    config: str | None = None,
+    progress=None,
+):
+    """Calibrate `dataset` (MeshDataset or TrajectoryDataset) with a registered method -> Result.
+
+    `progress`: optional callback for the methods in `WITH_PROGRESS` (others ignore it), called with
+    the epochs done since its last call."""
     from jaxcal.data import MeshDataset
 
     kind = "mesh" if isinstance(dataset, MeshDataset) else "trajectory"
     fn = get_method(kind, method)
+    if progress is not None and kind == "mesh" and method in WITH_PROGRESS:
+        return fn(dataset, params=params, config=config, progress=progress)
     return fn(dataset, params=params, config=config)

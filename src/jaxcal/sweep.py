@@ -11,11 +11,28 @@ Runs whose datasets have the same number of nodes and epochs form a group and ru
 grid: the largest of their `prepare` grids (a dataset whose own grid is smaller gets a few more
 cells of uniform prior at the border; with a single dataset the grid is exactly `run_pgp`'s).
 
-Batches hold `batch_size` runs per device (the last one padded with copies of a run) and their
-leading axis is sharded over a 1-D mesh of `jax.devices()` (`NamedSharding`); under
-`jax.distributed` the mesh spans the devices of all
-processes, every process builds the same batches and computes its own shards, and the metrics are
-gathered to every process (`process_allgather`), so that process 0 can write them.
+Batches hold `batch_size` runs per device and are laid out along a 1-D mesh of `jax.devices()`
+(`NamedSharding`, run i of a batch on device i // batch_size); under `jax.distributed` the mesh
+spans the devices of all processes, every process builds the same batches and computes the runs
+of its own devices, and the metrics are gathered to every process (`process_allgather`), so that
+process 0 can write them.
+
+Execution (`SweepSpec.execution`, `jaxcal sweep --execution`), chosen per backend by "auto":
+
+- "sequential" (auto on CPU): every device runs its runs one after the other, each exactly as a
+  single `run_pgp` (`pgp.run_chunked`: the windowed fast path, whose `lax.cond`s stay branches),
+  then `reduce_metrics`. A sweep then costs what its runs cost one by one, and its numbers are
+  bit-for-bit those of `run_pgp`. Several local devices run their runs in one thread each.
+  Under `vmap` a `cond` whose predicate differs between runs evaluates both branches, i.e. every
+  epoch of every run would also pay the full-grid epoch: 10-30x a single run on CPU.
+- "vmap" (auto on GPU/TPU): vmapped batches (the last one padded with copies of a run) sharded
+  over the devices: wide batches keep an accelerator busy. On the windowed fast path the batch
+  runs in lockstep chunks (`mesh.lockstep`): the host decides each step's branch for the whole
+  batch (a window-only chunk for the runs whose windows hold, a full-grid epoch only for the runs
+  that need one), so runs do not pay the full grid at every epoch. The one-scan likelihoods
+  ("direct", "dense") and multi-process sweeps run one vmapped `pgp._filter` per batch (both
+  branches of every cond). Same metrics as "sequential" up to rounding;
+  `benchmarks/sweep_batching.py` measures runs/s against batch size.
 
 Metrics per run (`METRICS`, all in the configuration frame, a0 excluded): `rmse_m` (every localised
 epoch estimate, as `jaxcal evaluate`), `final_rmse_m` (the final positions), `availability` (share
@@ -28,7 +45,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import equinox as eqx
 import jax
@@ -53,6 +70,8 @@ from jaxcal.tune import (
 __all__ = [
     "SWEEPABLE",
     "METRICS",
+    "EXECUTIONS",
+    "resolve_execution",
     "Scenario",
     "SweepSpec",
     "parse_spec",
@@ -61,6 +80,8 @@ __all__ = [
     "Group",
     "build_groups",
     "run_metrics",
+    "reduce_metrics",
+    "run_single",
     "run_batch",
     "execute",
 ]
@@ -69,6 +90,17 @@ SWEEPABLE = (
     "tau", "r_est", "sigma_r", "v", "sigma_v", "alpha", "p_out", "nlos_weight", "nlos_mean_m"
 )
 METRICS = ("rmse_m", "final_rmse_m", "availability", "localised", "nlpl")
+EXECUTIONS = ("auto", "sequential", "vmap")
+
+
+def resolve_execution(execution: str = "auto", backend: str | None = None) -> str:
+    """"sequential" or "vmap": `execution` itself, or for "auto" the choice for `backend`
+    (default `jax.default_backend()`): "sequential" on CPU, "vmap" on accelerators."""
+    if execution not in EXECUTIONS:
+        raise JaxcalError(f"execution: one of {', '.join(EXECUTIONS)}; got {execution!r}")
+    if execution != "auto":
+        return execution
+    return "sequential" if (backend or jax.default_backend()) == "cpu" else "vmap"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,6 +124,8 @@ class SweepSpec:
         params: fixed parameter overrides of `PGPParams`. grid: swept name -> values.
         scenarios: the dataset sources. batch_size: runs per device in one batch (a batch holds
             batch_size x device count runs; the last one of a group is padded with copies).
+        execution: "auto", "sequential" or "vmap" (module docstring); results do not depend on
+            it beyond rounding, so like batch_size it is not part of a sweep's identity.
     """
 
     method: str
@@ -100,6 +134,7 @@ class SweepSpec:
     grid: tuple[tuple[str, tuple[float, ...]], ...]
     scenarios: tuple[Scenario, ...]
     batch_size: int = 16
+    execution: str = "auto"
 
 
 def _need(ok: bool, msg: str) -> None:
@@ -109,7 +144,7 @@ def _need(ok: bool, msg: str) -> None:
 
 def parse_spec(doc: Mapping) -> SweepSpec:
     """Validate a sweep specification (the dict of a TOML file) and return a `SweepSpec`."""
-    known = {"method", "epochs", "batch_size", "params", "grid", "scenarios"}
+    known = {"method", "epochs", "batch_size", "execution", "params", "grid", "scenarios"}
     extra = set(doc) - known
     _need(not extra, f"unknown keys {sorted(extra)} (known: {sorted(known)})")
     method = doc.get("method", "pgp")
@@ -121,6 +156,11 @@ def parse_spec(doc: Mapping) -> SweepSpec:
     )
     bs = doc.get("batch_size", 16)
     _need(isinstance(bs, int) and bs >= 1, f"batch_size: an integer >= 1, got {bs!r}")
+    execution = doc.get("execution", "auto")
+    _need(
+        execution in EXECUTIONS,
+        f"execution: one of {', '.join(EXECUTIONS)}, got {execution!r}",
+    )
     params = dict(doc.get("params", {}))
     swept = set(doc.get("grid", {}))
     _need(
@@ -168,7 +208,9 @@ def parse_spec(doc: Mapping) -> SweepSpec:
                 tuple(sorted(dict(s.get("overrides", {})).items())),
             )
         )
-    return SweepSpec(method, epochs, tuple(sorted(params.items())), tuple(grid), tuple(out), bs)
+    return SweepSpec(
+        method, epochs, tuple(sorted(params.items())), tuple(grid), tuple(out), bs, execution
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -282,6 +324,13 @@ def run_metrics(
 ) -> dict[str, Float[Array, ""]]:
     """Run the filter once and reduce it to the sweep's metrics (one run; `run_batch` vmaps it)."""
     _, out = pgp._filter(cfg, prm, inp, logpost0)
+    return reduce_metrics(out, prm, truth, span_m)
+
+
+def reduce_metrics(
+    out: pgp.FilterOut, prm: pgp.FilterParams, truth, span_m: float
+) -> dict[str, Float[Array, ""]]:
+    """The sweep's metrics (`METRICS`) of one run's per-epoch outputs."""
     est = out.estimate
     have = jnp.isfinite(est).all(-1)[:, 1:]
     return {
@@ -301,6 +350,32 @@ def _batched(cfg, prm, inp, logpost0, truth, span_m):
 
 # One compilation per (group config, batch shape): parameter values and datasets are array data.
 run_batch = eqx.filter_jit(_batched)
+_reduce_batch = eqx.filter_jit(jax.vmap(reduce_metrics, in_axes=(0, 0, 0, None)))
+
+
+def run_batch_window(cfg, prm, inp, logpost0, truth, span_m) -> dict[str, Array]:
+    """`run_batch` on the windowed fast path (`mesh.lockstep`): the host decides each step's
+    branch for the whole batch, so runs pay the full-grid epoch only when one of them needs it."""
+    from jaxcal.mesh.lockstep import run_lockstep
+
+    out = run_lockstep(cfg, prm, inp, logpost0)
+    return _reduce_batch(out, prm, truth, span_m)
+_reduce_jit = eqx.filter_jit(reduce_metrics)
+
+
+def run_single(
+    cfg: pgp.FilterConfig,
+    prm: pgp.FilterParams,
+    inp: pgp.FilterInputs,
+    logpost0,
+    truth,
+    span_m: float,
+) -> dict[str, Array]:
+    """One run exactly as `pgp.run_pgp` runs it (`pgp.run_chunked`, the fast path), reduced to
+    the metrics: the "sequential" execution. Compiles once per group config (chunk programs of
+    `run_chunked` and `reduce_metrics`), not per parameter value."""
+    _, out = pgp.run_chunked(cfg, prm, inp, logpost0)
+    return _reduce_jit(out, prm, truth, span_m)
 
 
 def _shard(tree, mesh):
@@ -330,6 +405,7 @@ def execute(
     group_of: np.ndarray,
     done: np.ndarray,
     devices: Sequence | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
     """Run every run not yet `done`, batch by batch.
 
@@ -340,6 +416,9 @@ def execute(
         spec, pl, groups, group_of: from `parse_spec`, `plan`, `build_groups`.
         done: (R,) bool, runs already finished.
         devices: devices of the 1-D mesh (default `jax.devices()`, all processes).
+        progress: optional callback called with the number of runs finished since its last call
+            (after each run of this process's devices with "sequential", after each batch with
+            "vmap").
 
     Yields:
         (run indices, metrics name -> values) per finished batch.
@@ -348,12 +427,16 @@ def execute(
 
     devs = list(devices) if devices is not None else jax.devices()
     mesh = Mesh(np.asarray(devs), ("runs",))
+    execution = resolve_execution(spec.execution, devs[0].platform)
     # per-device width fixed by the spec: every device runs the same program whatever their number
     bsz = spec.batch_size * len(devs)
     run_group = group_of[pl.dataset_of]
     for gi, g in enumerate(groups):
         runs = np.flatnonzero(run_group == gi)
         local = {d: k for k, d in enumerate(g.members)}
+        dtype = np.asarray(g.base.sigma_r).dtype
+        inp_np = jax.tree.map(np.asarray, g.inp)
+        lp0_np, truth_np = np.asarray(g.logpost0), np.asarray(g.truth)
         for start in range(0, runs.size, bsz):
             chunk = runs[start : start + bsz]
             todo = chunk[~done[chunk]]
@@ -364,17 +447,81 @@ def execute(
             prm = g.base
             for name, vals in pl.values.items():
                 prm = dataclasses.replace(prm, **{name: vals[padded]})
-            dtype = np.asarray(g.base.sigma_r).dtype
             prm = jax.tree.map(lambda a, t=dtype: np.broadcast_to(np.asarray(a, t), (bsz,)), prm)
             host = (
                 prm,
-                jax.tree.map(lambda a, i=ds_idx: np.asarray(a)[i], g.inp),
-                np.asarray(g.logpost0)[ds_idx],
-                np.asarray(g.truth)[ds_idx],
+                jax.tree.map(lambda a, i=ds_idx: a[i], inp_np),
+                lp0_np[ds_idx],
+                truth_np[ds_idx],
             )
-            args = _shard(host, mesh)
-            out = _gather(run_batch(g.cfg, *args, g.span_m))
+            if execution == "sequential":
+                out = _gather(_run_sequential(g, host, todo.size, mesh, spec.batch_size, progress))
+            elif g.cfg.window and not g.cfg.n_snap:  # lockstep chunks, one driver per device
+                out = _gather(_run_lockstep(g, host, mesh, spec.batch_size))
+            else:  # the one-scan likelihoods: one vmapped scan (both branches of every cond)
+                out = _gather(run_batch(g.cfg, *_shard(host, mesh), g.span_m))
+                if progress is not None:
+                    progress(int(todo.size))
             yield todo, {k: np.asarray(v, np.float64)[: todo.size] for k, v in out.items()}
+
+
+def _per_device(mesh, per: int, work) -> dict:
+    """`work(j, device)` -> metrics (per,) for each of this process's devices (one thread each
+    when several), assembled as arrays sharded like the batch (row i on device i // per)."""
+    from jax.sharding import NamedSharding, PartitionSpec
+
+    devs = list(mesh.devices.flat)
+    mine = [(j, d) for j, d in enumerate(devs) if d.process_index == jax.process_index()]
+    if len(mine) == 1:
+        parts = [work(*mine[0])]
+    else:  # the runtime releases the GIL while a device computes
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(len(mine)) as pool:
+            parts = list(pool.map(lambda jd: work(*jd), mine))
+    if jax.process_count() == 1:
+        return {k: np.concatenate([p[k] for p in parts]) for k in METRICS}
+    sh = NamedSharding(mesh, PartitionSpec("runs"))
+    shape = (per * len(devs),)
+    return {
+        k: jax.make_array_from_single_device_arrays(
+            shape, sh, [jax.device_put(p[k], d) for p, (_, d) in zip(parts, mine, strict=True)]
+        )
+        for k in METRICS
+    }
+
+
+def _run_lockstep(g: Group, host, mesh, per: int) -> dict:
+    """The "vmap" execution on the windowed fast path: each of this process's devices runs its
+    `per` rows as one vmapped lockstep batch (`run_batch_window`)."""
+
+    def work(j, dev):
+        rows = jax.device_put(jax.tree.map(lambda a: a[j * per : (j + 1) * per], host), dev)
+        m = run_batch_window(g.cfg, *rows, g.span_m)
+        return {k: np.asarray(m[k]) for k in METRICS}
+
+    return _per_device(mesh, per, work)
+
+
+def _run_sequential(g: Group, host, n_real: int, mesh, per: int, progress) -> dict:
+    """The "sequential" execution of one batch: each of this process's devices runs its rows
+    (`per` of them, row i on device i // per) one by one with `run_single`; rows past `n_real`
+    (padding) are not run (NaN)."""
+    dtype = host[2].dtype
+
+    def work(j, dev):
+        vals = {k: np.full(per, np.nan, dtype) for k in METRICS}
+        with jax.default_device(dev):
+            for i in range(j * per, min((j + 1) * per, n_real)):
+                row = jax.device_put(jax.tree.map(lambda a, i=i: a[i], host), dev)
+                m = run_single(g.cfg, *row, g.span_m)
+                for k in METRICS:
+                    vals[k][i - j * per] = np.asarray(m[k])
+                if progress is not None:
+                    progress(1)
+        return vals
+
+    return _per_device(mesh, per, work)
 
 
 def simulate_or_raise(sc: Scenario, seed: int) -> MeshDataset:

@@ -66,13 +66,19 @@ def run(args) -> int:
     params.update(parse_set(args.set))
     ds, config = resolve_config(ds, args.config)
     t0 = time.perf_counter()
+    from jaxcal.data import MeshDataset
+    from jaxcal.methods import WITH_PROGRESS
+    from jaxcal.progress import progress_bar
+
+    quiet = args.quiet or args.json
     stages = _stages(args.method, params)
     if stages:  # a stage-level bar (tqdm on a terminal; silent under --quiet, --json or a pipe)
-        from jaxcal.progress import progress_bar
-
         fn = get_method("mesh" if hasattr(ds, "node_ids") else "trajectory", args.method)
-        with progress_bar(stages, args.method, "stage", enabled=not (args.quiet or args.json)) as bar:
+        with progress_bar(stages, args.method, "stage", enabled=not quiet) as bar:
             result = fn(ds, params=params, config=config, progress=bar.update)
+    elif args.method in WITH_PROGRESS and isinstance(ds, MeshDataset):  # a bar over the filter's epochs
+        with progress_bar(ds.n_epochs, args.method, "epoch", enabled=not quiet) as bar:
+            result = calibrate(ds, args.method, params=params, config=config, progress=bar.update)
     else:
         result = calibrate(ds, args.method, params=params, config=config)
     elapsed = time.perf_counter() - t0

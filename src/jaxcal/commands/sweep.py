@@ -1,9 +1,11 @@
 """`jaxcal sweep SPEC.toml -o SWEEP.h5 [--coordinator HOST:PORT --num-processes P --process-id I]`:
-a parameter x scenario x seed grid of the grid filter, vmapped and sharded, resumable.
+a parameter x scenario x seed grid of the grid filter, sharded over devices and processes,
+resumable; runs one by one on the fast path on CPU, vmapped on accelerators (`--execution`).
 
 The output is rewritten whole after every batch (temporary file + `os.replace`), so a killed sweep
 leaves either the previous or the new complete file, never a torn one; on restart the runs whose
-`done` flag is set are skipped. Progress: one line per batch on stderr (runs, rate, ETA).
+`done` flag is set are skipped. Progress: a bar (runs done, runs/s, ETA) on a terminal, else one
+line per batch on stderr (log files of cluster jobs); `--quiet` neither.
 """
 
 from __future__ import annotations
@@ -24,6 +26,13 @@ def add_arguments(p) -> None:
         type=int,
         default=None,
         help="runs per device in one batch (overrides the spec)",
+    )
+    p.add_argument(
+        "--execution",
+        choices=("auto", "sequential", "vmap"),
+        default=None,
+        help="runs one by one on the fast path (CPU default) or vmapped batches (accelerator "
+        "default); overrides the spec",
     )
     p.add_argument(
         "--coordinator",
@@ -47,7 +56,7 @@ def add_arguments(p) -> None:
         metavar="SECONDS",
         help="pause after each batch (demonstrating interruption and resumption)",
     )
-    p.add_argument("--quiet", action="store_true", help="no progress lines, no summary line")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or lines, no summary line")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
 
 
@@ -153,6 +162,8 @@ def run(args) -> int:
     checked = check_output_path(args.output, [args.spec])
     if args.batch_size is not None:
         doc["batch_size"] = args.batch_size
+    if args.execution is not None:
+        doc["execution"] = args.execution
     import jax
 
     if args.coordinator:
@@ -212,11 +223,18 @@ def run(args) -> int:
         if writer and not args.quiet
         else (lambda msg: None)
     )
+    execution = S.resolve_execution(spec.execution)
     log(
         f"sweep: {pl.n_runs} runs on {jax.device_count()} device(s) in "
-        f"{jax.process_count()} process(es)"
+        f"{jax.process_count()} process(es), {execution} execution"
         + (f", resuming with {resumed} done" if resumed else "")
     )
+    from jaxcal.progress import progress_bar, wanted
+
+    # a bar on a terminal; otherwise (log files, pipes) one line per batch
+    bar_on = writer and wanted(not args.quiet)
+    if bar_on:
+        log = lambda msg: None  # noqa: E731
     computed, t0 = 0, time.perf_counter()
     if todo:
         groups, group_of = S.build_groups(
@@ -224,23 +242,31 @@ def run(args) -> int:
         )
         if writer:
             _write_store(out, attrs, runs, metrics, done)
-        for idx, vals in S.execute(spec, pl, groups, group_of, done):
-            for k, v in vals.items():
-                metrics[k][idx] = v
-            done[idx] = True
-            computed += idx.size
-            if writer:
-                _write_store(out, attrs, runs, metrics, done)
-            el = time.perf_counter() - t0
-            rate = computed / el if el > 0 else float("nan")
-            eta = (todo - computed) / rate if rate > 0 else float("nan")
-            log(
-                f"sweep: {int(done.sum())}/{pl.n_runs} runs ({100 * done.mean():.0f} %), "
-                f"{rate:.2f} runs/s, "
-                f"ETA {eta:.0f} s"
+        with progress_bar(todo, "sweep", "run", enabled=bar_on) as bar:
+            # per run with one process; with several, per batch (a callback sees local runs only)
+            per_run = jax.process_count() == 1
+            batches = S.execute(
+                spec, pl, groups, group_of, done, progress=bar.update if per_run else None
             )
-            if args.throttle > 0:
-                time.sleep(args.throttle)
+            for idx, vals in batches:
+                for k, v in vals.items():
+                    metrics[k][idx] = v
+                done[idx] = True
+                computed += idx.size
+                if not per_run:
+                    bar.update(int(idx.size))
+                if writer:
+                    _write_store(out, attrs, runs, metrics, done)
+                el = time.perf_counter() - t0
+                rate = computed / el if el > 0 else float("nan")
+                eta = (todo - computed) / rate if rate > 0 else float("nan")
+                log(
+                    f"sweep: {int(done.sum())}/{pl.n_runs} runs ({100 * done.mean():.0f} %), "
+                    f"{rate:.2f} runs/s, "
+                    f"ETA {eta:.0f} s"
+                )
+                if args.throttle > 0:
+                    time.sleep(args.throttle)
     elif writer:
         _write_store(out, attrs, runs, metrics, done)
     el = time.perf_counter() - t0

@@ -17,6 +17,10 @@ from jaxcal.mesh.pgp import PGPParams, run_pgp
 __all__ = ["calibrate", "PGPParams"]
 
 
-def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> Result:
-    """`--method parametric`: the grid filter with eq. (9) point-estimate likelihoods."""
-    return run_pgp(dataset, params, config, mode="parametric")[0]
+def calibrate(
+    dataset: MeshDataset, params=None, config: str | None = None, progress=None
+) -> Result:
+    """`--method parametric`: the grid filter with eq. (9) point-estimate likelihoods.
+
+    `progress`: optional callback called with the epochs done since its last call."""
+    return run_pgp(dataset, params, config, mode="parametric", progress=progress)[0]

@@ -798,6 +798,7 @@ def run_chunked(
     logpost0,
     chunk: int = 64,
     full_chunk: int = 4,
+    progress=None,
 ):
     """`run_filter` for `likelihood="window"` driven from the host in chunks of epochs.
 
@@ -805,10 +806,17 @@ def run_chunked(
     run without the full grid in the scan's carry (`_scan_windows`); other epochs run in chunks of
     `full_chunk` with the full grid (`_scan`). Each chunk length compiles once.
 
+    Args:
+        progress: optional callback, called with the number of epochs done since its last call
+            (after every chunk). Without the fast path (other likelihoods, snapshots) the one
+            scan then runs in segments (`run_segmented`); results are identical either way.
+
     Returns:
         (final FilterState with the full-grid `logpost`, FilterOut of all epochs).
     """
     if not cfg.window or cfg.n_snap:
+        if progress is not None:
+            return run_segmented(cfg, prm, inp, logpost0, progress=progress)
         return run_filter(cfg, prm, inp, logpost0)
     n_ep = int(inp.z.shape[0])
     st = init_state(cfg, logpost0)
@@ -838,12 +846,48 @@ def run_chunked(
                 st = dataclasses.replace(st2, logpost=full)
                 outs.append(jax.tree.map(lambda a, d=done: a[:d], out))
                 k += done
+                if progress is not None:
+                    progress(done)
             if done == m:
                 continue
         m = full_chunk if n_ep - k >= full_chunk else 1
         st, out = _scan_jit(cfg, prm, part(k, k + m), st, jnp.asarray(k))
         outs.append(out)
         k += m
+        if progress is not None:
+            progress(m)
+    out = jax.tree.map(lambda *a: jnp.concatenate(a), *outs)
+    st = dataclasses.replace(st, logpost=_full_logpost(cfg, st), windowed=jnp.asarray(False))
+    return st, out
+
+
+def run_segmented(
+    cfg: FilterConfig,
+    prm: FilterParams,
+    inp: FilterInputs,
+    logpost0,
+    segment: int = 64,
+    progress=None,
+):
+    """`run_filter` as a host loop over segments of `segment` epochs (one jitted `_scan` per
+    segment, the state carried from one call to the next), calling `progress(epochs)` after each.
+
+    The same scan body on the same state: results are bit-for-bit those of `run_filter`
+    (tested). Segments of one length compile once (plus once for a shorter last segment).
+
+    Returns:
+        (final FilterState with the full-grid `logpost`, FilterOut of all epochs).
+    """
+    n_ep = int(inp.z.shape[0])
+    st = init_state(cfg, logpost0)
+    outs = []
+    for k in range(0, n_ep, segment):
+        m = min(segment, n_ep - k)
+        part = dataclasses.replace(inp, z=inp.z[k : k + m], dt=inp.dt[k : k + m])
+        st, out = _scan_jit(cfg, prm, part, st, jnp.asarray(k))
+        outs.append(out)
+        if progress is not None:
+            progress(m)
     out = jax.tree.map(lambda *a: jnp.concatenate(a), *outs)
     st = dataclasses.replace(st, logpost=_full_logpost(cfg, st), windowed=jnp.asarray(False))
     return st, out
@@ -1055,6 +1099,7 @@ def run_pgp(
     *,
     mode: str = "pgp",
     snapshot_epochs=(),
+    progress=None,
 ) -> tuple[Result, PGPInfo]:
     """Run the grid filter on a mesh dataset.
 
@@ -1064,6 +1109,8 @@ def run_pgp(
         config: the frame configuration's name (None: `default` or (0, 1, 2)).
         mode: "pgp" (eq. 10-11) or "parametric" (eq. 9).
         snapshot_epochs: epochs whose posterior grids are returned in `PGPInfo.snapshots`.
+        progress: optional callback, called with the epochs done since its last call (the scan
+            runs in chunks; results do not depend on it).
 
     Returns:
         (Result, PGPInfo): positions, covariance and per-epoch track in the configuration frame,
@@ -1075,7 +1122,7 @@ def run_pgp(
     if dataset.n_epochs == 0:
         raise JaxcalError(f"{dataset.name}: no epochs to calibrate from")
     cfg, prm, inp, logpost0, order = prepare(dataset, params, config, mode, snapshot_epochs)
-    st, out = run_chunked(cfg, prm, inp, logpost0)
+    st, out = run_chunked(cfg, prm, inp, logpost0, progress=progress)
     cells = cfg.grid.cells(logpost0.dtype)
     n = logpost0.shape[0]
     lp = st.logpost.reshape(n, -1)
@@ -1122,6 +1169,10 @@ def _software() -> str:
         return "jaxcal"
 
 
-def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> Result:
-    """`--method pgp`: the grid-based Bayesian filter with hypothesis likelihoods (eq. 3-14)."""
-    return run_pgp(dataset, params, config, mode="pgp")[0]
+def calibrate(
+    dataset: MeshDataset, params=None, config: str | None = None, progress=None
+) -> Result:
+    """`--method pgp`: the grid-based Bayesian filter with hypothesis likelihoods (eq. 3-14).
+
+    `progress`: optional callback called with the epochs done since its last call."""
+    return run_pgp(dataset, params, config, mode="pgp", progress=progress)[0]
