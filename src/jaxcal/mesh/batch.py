@@ -191,9 +191,11 @@ class BatchSolution(eqx.Module):
             (`bias=auto`; NaN otherwise).
         mcmc_accept, mcmc_rhat: `estimate=mean` only (NaN otherwise): the sampler's acceptance rate and
             the largest split R-hat over the free coordinates.
-        estimate: the estimate reported: `mean`, or `map` when asked for, or when the chains did not mix
-            (R-hat above `RHAT_MAX` or undefined: e.g. a node with a single range, whose posterior under
-            the heavy-tailed likelihood is improper, or fewer pairs than unknowns).
+        estimate: the estimate reported: `mean`, or `map` when asked for, when the measurement graph
+            makes the pair-level posterior improper or not locally identifiable (`posterior_defect`,
+            decided before any sampling), or when the chains did not mix (R-hat above `RHAT_MAX` or
+            undefined).
+        fallback_reason: why `estimate=mean` fell back to the fit ("" when it did not).
     """
 
     position: np.ndarray
@@ -208,6 +210,7 @@ class BatchSolution(eqx.Module):
     mcmc_accept: float = float("nan")
     mcmc_rhat: float = float("nan")
     estimate: str = "map"
+    fallback_reason: str = ""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -764,6 +767,53 @@ def posterior_mean(free: Array, template: Array, mask: Array, c: Array, b: Array
 # Public entry points
 
 
+def posterior_defect(i: np.ndarray, j: np.ndarray, n_nodes: int, dim: int, nu: float, n_offsets: int,
+                     node_ids: tuple[str, ...], seed: int = 0) -> str:
+    """Why the pair-level posterior of `estimate=mean` cannot be sampled, from the measurement graph
+    alone ("" when it can). Decided before sampling, so the fallback does not hang on a chain's path.
+
+    Two structural defects:
+    - a node with k distinct neighbours has, far from them, a likelihood that decays like
+      r^(-k (nu + 1)) (Student-t tails) over a volume growing like r^(dim - 1): with k (nu + 1) <= dim
+      the posterior (flat prior) is improper: its mean and covariance do not exist.
+    - the pairs do not fix the configuration to first order: the rigidity matrix (one row per measured
+      pair, d||x_i - x_j|| / dx at a random generic configuration) has rank below
+      dim n - dim (dim + 1) / 2 (generic rigidity), or there are fewer pairs than unknowns (positions and
+      offsets); the posterior then spreads along a continuum and its mean is no estimate.
+
+    Args:
+        i, j: (M,) node indices (0..n_nodes-1) of the measured unordered pairs (no duplicates needed).
+        n_nodes: number of (connected) nodes; dim: 2 or 3; nu: Student-t degrees of freedom;
+        n_offsets: fitted range offsets (common and per-node) that the pairs must also fix;
+        node_ids: ids of the n_nodes nodes (for the message); seed: of the random configuration.
+
+    Returns:
+        A one-line reason, or "".
+    """
+    pairs = {(min(a, b), max(a, b)) for a, b in zip(np.asarray(i).tolist(), np.asarray(j).tolist()) if a != b}
+    nbrs = [set() for _ in range(n_nodes)]
+    for a, b in pairs:
+        nbrs[a].add(b)
+        nbrs[b].add(a)
+    for k in range(n_nodes):
+        if len(nbrs[k]) * (nu + 1.0) <= dim:
+            names = ", ".join(node_ids[q] for q in sorted(nbrs[k]))
+            return (f"{node_ids[k]} ranges only {names}: its posterior under the Student-t likelihood "
+                    f"(nu={nu:g}) is improper")
+    n_unknown = dim * n_nodes - dim * (dim + 1) // 2
+    if len(pairs) < n_unknown + n_offsets:
+        return f"{len(pairs)} measured pairs for {n_unknown + n_offsets} unknowns"
+    x = np.random.default_rng(seed).normal(size=(n_nodes, dim))
+    rig = np.zeros((len(pairs), n_nodes * dim))
+    for row, (a, b) in enumerate(sorted(pairs)):
+        u = (x[a] - x[b]) / np.linalg.norm(x[a] - x[b])
+        rig[row, a * dim:(a + 1) * dim] = u
+        rig[row, b * dim:(b + 1) * dim] = -u
+    if np.linalg.matrix_rank(rig) < n_unknown:
+        return "the measured pairs do not make the network rigid (it can flex without changing a range)"
+    return ""
+
+
 def _bucket(m: int) -> int:
     """Padded length >= m from the sequence 16, 24, 32, 48, 64, ... (fewer distinct shapes to compile)."""
     size = 16
@@ -931,8 +981,11 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
                                state.b, obs, nb)
     cov_free = np.asarray(cov_free)
     offset, node_b, accept, rhat = float(state.c), np.asarray(state.b), float("nan"), float("nan")
-    used = "map"
+    used, reason = "map", ""
     if p.estimate == "mean":
+        n_off = int(chosen != "none")  # per-node offsets have a proper prior of their own
+        reason = posterior_defect(mi, mj, m, p.dim, p.student_nu, n_off, tuple(ids[k] for k in sub), p.seed)
+    if p.estimate == "mean" and not reason:
         mean, cov_s, acc, rh = posterior_mean(
             jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c, state.b, obs_pairs, nb,
             jax.random.fold_in(key, 11), jnp.asarray(float(p.student_nu)), p.mcmc_chains, p.mcmc_steps)
@@ -943,6 +996,8 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
             x_frame_sub[mask] = mean[:f]
             cov_free, offset, node_b = cov_s[:f, :f], float(mean[f]), mean[f + 1:]
             used = "mean"
+        else:
+            reason = f"the posterior chains did not mix (split R-hat {rhat:.2f}, limit {RHAT_MAX:.2f})"
     full_idx = np.flatnonzero(mask.ravel())
     cov_all = np.zeros((m * p.dim, m * p.dim))
     cov_all[np.ix_(full_idx, full_idx)] = cov_free
@@ -961,7 +1016,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         position=position, covariance=covariance,
         offset_m=offset if chosen != "none" else 0.0, node_offset_m=node_off,
         cost=cost, start_costs=costs, residual_sigma_m=float(np.sqrt(s2)), bias=chosen, boot_rmse_m=boot,
-        mcmc_accept=accept, mcmc_rhat=rhat, estimate=used,
+        mcmc_accept=accept, mcmc_rhat=rhat, estimate=used, fallback_reason=reason,
     )
 
 
@@ -984,10 +1039,10 @@ def warn_if_unmixed(sol: BatchSolution, p: BatchParams) -> bool:
     """Log one warning line (logger `jaxcal`) when `estimate=mean` fell back to the fit; True if so."""
     if p.estimate != "mean" or sol.estimate == "mean":
         return False
+    hint = "add ranges" if "R-hat" not in sol.fallback_reason else f"raise mcmc_steps (now {p.mcmc_steps}) or add ranges"
     logging.getLogger("jaxcal").warning(
-        "batch: the posterior chains did not mix (split R-hat %.2f, limit %.2f): reporting the fit "
-        "(estimate=map) and its covariance instead; raise mcmc_steps (now %d) or add ranges",
-        sol.mcmc_rhat, RHAT_MAX, p.mcmc_steps)
+        "batch: %s: reporting the fit (estimate=map) and its covariance instead; %s",
+        sol.fallback_reason or "the posterior mean is not available", hint)
     return True
 
 
