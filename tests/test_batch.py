@@ -259,6 +259,16 @@ def test_irls_all_epochs_equals_direct_fit(rng):
     assert abs(fast.offset_m - float(st.c[0])) < 1e-5
 
 
+def test_covariance_union_contains_both(rng):
+    for _ in range(20):
+        a, b = (m @ m.T for m in rng.normal(size=(2, 4, 4)))
+        u = B.covariance_union(a, b)
+        np.testing.assert_allclose(u, u.T)
+        for part in (a, b):
+            assert np.linalg.eigvalsh(u - part).min() > -1e-9 * np.abs(u).max()
+    np.testing.assert_allclose(B.covariance_union(a, a), a, atol=1e-12)
+
+
 def test_covariance_shape_psd_and_equals_finite_difference_reference(rng):
     truth = random_geometry(rng, 2)
     r = ranges_of(truth, k=1, noise=0.05, rng=rng)
@@ -283,8 +293,17 @@ def test_covariance_shape_psd_and_equals_finite_difference_reference(rng):
 
     th = x[mask]
     jac = np.stack([(res(th + h) - res(th - h)) / 2e-6 for h in np.eye(th.size) * 1e-6], axis=1)
-    s2 = np.sum(res(th) ** 2) / (len(z) - th.size)
-    ref = s2 * np.linalg.inv(jac.T @ jac)
+    e = res(th)
+    s2 = np.sum(e**2) / (len(z) - th.size)
+    a_inv = np.linalg.inv(jac.T @ jac)
+    laplace = s2 * a_inv
+    # the pair-level HC3 sandwich, and the smallest-change union of the two (both must be contained)
+    lev = np.clip(np.einsum("kp,pq,kq->k", jac, a_inv, jac), 0, 0.99)
+    hc3 = a_inv @ (jac.T * (e / (1 - lev)) ** 2) @ jac @ a_inv
+    lam, vec = np.linalg.eigh(hc3 - laplace)
+    ref = laplace + (vec * np.maximum(lam, 0)) @ vec.T
+    for part in (laplace, hc3):
+        assert np.linalg.eigvalsh(ref - part).min() > -1e-9 * np.abs(ref).max()
     full = np.zeros((N * 2, N * 2))
     idx = np.flatnonzero(mask.ravel())
     full[np.ix_(idx, idx)] = ref
@@ -494,3 +513,17 @@ def test_solve_runs_in_float64_whatever_the_global_setting(rng):
     sol = B.solve(r, (0, 1, 2), p)
     assert sol32.mcmc_accept > 0.3 and np.isfinite(sol32.mcmc_rhat)
     np.testing.assert_array_equal(sol32.position, sol.position)
+
+
+def test_covariance_does_not_shrink_with_epochs_of_a_constant_pair_error(rng):
+    # per-pair offsets are the same at every epoch: 10x the epochs must not give a ~3x smaller covariance
+    truth = random_geometry(rng, 2)
+    off = np.triu(rng.normal(0, 0.05, (N, N)), 1)
+    off = off + off.T
+    sd = []
+    for k in (5, 50):
+        r = ranges_of(truth, k=k, noise=0.01, rng=rng) + off[None]
+        sol = B.solve(r, (0, 1, 2), B.BatchParams(**FAST))
+        sd.append(np.sqrt(np.trace(sol.covariance[2:], axis1=1, axis2=2)))
+    ratio = sd[1] / sd[0]
+    assert np.all(ratio > 0.7) and np.all(ratio < 1.4), ratio

@@ -132,3 +132,24 @@ def test_cli_calibrate_gp_then_evaluate(tmp_path):
         "calibrate", f, "--method", "nls", "-o", tmp_path / "x.h5", "--set", "loss=tukey", env=env
     )
     assert_one_line_error(bad, "loss")
+
+
+def test_robust_covariance_equals_numpy_cluster_sandwich_and_contains_the_model():
+    rng = np.random.default_rng(3)
+    n, p, g = 60, 4, 6
+    jac = rng.normal(size=(n, p))
+    # errors correlated within stretches: a common shift per stretch of 10 consecutive entries
+    res = rng.normal(size=n) * 0.05 + np.repeat(rng.normal(size=g), n // g) * 0.3
+    mask = np.ones(n, bool)
+    mask[-4:] = False  # padding at the end
+    model = 0.01 * np.linalg.inv(jac.T @ jac)
+    out = np.asarray(nls.robust_covariance(model, jac * mask[:, None], res * mask, mask, g))
+    # reference: clusters by rank among the 56 valid entries
+    cl = (np.arange(56) * g) // 56
+    s = np.stack([(jac[:56][cl == c] * res[:56][cl == c, None]).sum(0) for c in range(g)])
+    a_inv = np.linalg.pinv(jac[:56].T @ jac[:56])
+    sand = g / (g - 1) * a_inv @ s.T @ s @ a_inv
+    for part in (model, sand):
+        assert np.linalg.eigvalsh(out - part).min() > -1e-12
+    lam, vec = np.linalg.eigh(sand - model)
+    np.testing.assert_allclose(out, model + (vec * np.maximum(lam, 0)) @ vec.T, atol=1e-12)

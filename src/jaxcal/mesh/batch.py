@@ -26,10 +26,12 @@ one with the least expected squared error; its covariance comes from the posteri
 where the pair, not the single range, is the unit of information (repeated ranges of one pair share its
 systematic error), so it is not the 13-80x overconfident Laplace covariance of the all-ranges fit.
 
-Output frame: a0 at the origin, a1 on +x, a2 with y > 0 (CONTRACT 1.1). The covariance
-`sigma^2 (J^T W J)^-1` is computed in gauge-fixed coordinates of that frame (W = IRLS weights
-psi(e)/e, sigma^2 the weighted residual variance), so it is exactly zero for the coordinates the
-frame fixes.
+Output frame: a0 at the origin, a1 on +x, a2 with y > 0 (CONTRACT 1.1). Covariances are computed in
+gauge-fixed coordinates of that frame, so they are exactly zero for the coordinates the frame fixes. The
+reported covariance is at least the pair-level HC3 sandwich (`_pair_sandwich`: the realised error of every
+pair counted once, whatever the number of epochs) in every direction (`covariance_union`): with
+`estimate=map` it widens the Laplace covariance `sigma^2 (J^T W J)^-1` of the all-ranges fit (W = IRLS
+weights psi(e)/e), with `estimate=mean` the posterior sample covariance.
 """
 
 from __future__ import annotations
@@ -615,6 +617,68 @@ def _covariance(free: Array, template: Array, mask: Array, c: Array, b: Array, o
     return cov[:f, :f], s2
 
 
+def covariance_union(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The covariance a + (b - a)_+ ((.)_+ the positive semi-definite part): at least as large as a and as
+    b in every direction (a + (b - a)_+ = b + (b - a)_-), symmetric PSD when a and b are."""
+    a = 0.5 * (a + a.T)
+    d = 0.5 * (b + b.T) - a
+    lam, vec = np.linalg.eigh(d)
+    out = a + (vec * np.maximum(lam, 0.0)) @ vec.T
+    return 0.5 * (out + out.T)
+
+
+def _pair_scale(e: Array, real: Array, n_par: Array) -> Array:
+    """Robust scale [m] of pair errors: 1.4826 MAD, inflated for the fitted parameters (sqrt(M / (M - P)))."""
+    m = jnp.sum(real)
+    mad = jnp.nanmedian(jnp.where(real, jnp.abs(e), jnp.nan))
+    return jnp.maximum(1.4826 * mad * jnp.sqrt(m / jnp.maximum(m - n_par, 1.0)), 1e-6)
+
+
+@eqx.filter_jit
+def _pair_sandwich(free: Array, template: Array, mask: Array, c: Array, b: Array, obs: Observations,
+                   nb: _Numbers) -> Array:
+    """Heteroscedasticity-robust (HC3 sandwich) covariance of the free coordinates and offsets, with the
+    *pair* as the unit.
+
+    Repeated ranges of one pair share its systematic error (antenna delays, static multipath, an NLOS
+    excess): averaging 400 epochs does not shrink it, so a covariance that counts every range as
+    independent is too small by about sqrt(epochs). Here each pair is one observation (its robust
+    location, `obs`) and the covariance is A^-1 B A^-1 with A = J^T J + prior and
+    B = sum_k (e_k / (1 - h_k))^2 J_k^T J_k: the realised error of every pair, corrected for its leverage
+    h_k (HC3; with one or two pairs per unknown, residuals are much smaller than errors). Every pair's
+    residual counts at full weight, even where the fit's robust loss discounts it: a systematic error that
+    the geometry absorbs (an NLOS excess on a node's pairs moves the node) shows only partly in the
+    residuals, and the least-squares influence is the conservative reading of what is left. On families
+    of random NLOS networks with per-pair offsets this gives NEES per dof near 1 where the robust
+    (psi-weighted) sandwich stays 2-20 (benchmarks/uncertainty_families.py).
+
+    Args:
+        free, template, mask, c, b: the fit (as for `_covariance`); obs: one observation per pair;
+        nb: numbers of the fit.
+
+    Returns:
+        (F + 1 + n, F + 1 + n) covariance.
+    """
+    f, n_b = free.shape[0], b.shape[0]
+    idx = jnp.nonzero(mask.ravel(), size=f)[0]
+    theta0 = jnp.concatenate([free, jnp.reshape(c, (1,)), b])
+
+    def errs(theta):
+        x = template.ravel().at[idx].set(theta[:f]).reshape(template.shape)
+        return _errors(_State(x, theta[f], theta[f + 1:]), obs, nb)
+
+    real = obs.w > 0
+    e = jnp.where(real, errs(theta0), 0.0)
+    jac = jax.jacfwd(errs)(theta0) * real[:, None]
+    sc, sb = _prior_scales(nb)
+    prior = jnp.concatenate([jnp.zeros(f), jnp.stack([1.0 / sc**2]), jnp.full(n_b, 1.0 / sb**2)])
+    a_inv = jnp.linalg.inv(jac.T @ jac + jnp.diag(prior))
+    lev = jnp.clip(jnp.einsum("kp,pq,kq->k", jac, a_inv, jac), 0.0, 0.99)
+    meat = (jac.T * (e / (1.0 - lev)) ** 2) @ jac
+    cov = a_inv @ meat @ a_inv
+    return 0.5 * (cov + cov.T)
+
+
 _LEAPFROG = 16  # leapfrog steps per HMC transition of `posterior_mean`
 
 
@@ -670,10 +734,8 @@ def posterior_mean(free: Array, template: Array, mask: Array, c: Array, b: Array
 
     real = obs.w > 0
     e0 = errs(theta0)
-    m = jnp.sum(real)
     n_par = f + nb.use_c + nb.use_b * n_b
-    mad = jnp.nanmedian(jnp.where(real, jnp.abs(e0), jnp.nan))
-    scale = jnp.maximum(1.4826 * mad * jnp.sqrt(m / jnp.maximum(m - n_par, 1.0)), 1e-6)
+    scale = _pair_scale(e0, real, n_par)
     sc, sb = _prior_scales(nb)
     prior_prec = jnp.concatenate([jnp.zeros(f), jnp.stack([1.0 / sc**2]), jnp.full(n_b, 1.0 / sb**2)])
 
@@ -956,8 +1018,9 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         pair_i, pair_j = jnp.asarray(_pad(uniq // m, size)), jnp.asarray(_pad(uniq % m, size))
         state = _irls_all(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb, p.solver, p.tol,
                           p.max_steps, p.irls_iters)
-        if p.estimate == "mean":  # the posterior's pair observations: where the all-ranges fit puts them
-            obs_pairs = _pair_locations(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb)
+        # one observation per pair, where the all-ranges fit puts it: what the posterior of estimate=mean
+        # sees, and the unit of the pair-level (sandwich) covariance of both estimates
+        obs_pairs = _pair_locations(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb)
 
     x_sub = np.asarray(state.x)
     x_frame_sub = to_frame(x_sub, int(remap[a0]), int(remap[a1]), int(remap[a2]))
@@ -980,6 +1043,9 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     cov_free, s2 = _covariance(jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c,
                                state.b, obs, nb)
     cov_free = np.asarray(cov_free)
+    sand = np.asarray(_pair_sandwich(jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c,
+                                     state.b, obs_pairs, nb))[:free.size, :free.size]
+    cov_free = covariance_union(cov_free, sand)
     offset, node_b, accept, rhat = float(state.c), np.asarray(state.b), float("nan"), float("nan")
     used, reason = "map", ""
     if p.estimate == "mean":
@@ -994,7 +1060,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         accept, rhat = float(acc), float(rh)
         if rhat <= RHAT_MAX and np.isfinite(mean).all() and np.isfinite(cov_s).all():
             x_frame_sub[mask] = mean[:f]
-            cov_free, offset, node_b = cov_s[:f, :f], float(mean[f]), mean[f + 1:]
+            cov_free, offset, node_b = covariance_union(cov_s[:f, :f], sand), float(mean[f]), mean[f + 1:]
             used = "mean"
         else:
             reason = f"the posterior chains did not mix (split R-hat {rhat:.2f}, limit {RHAT_MAX:.2f})"
