@@ -30,10 +30,18 @@ def run(args) -> int:
     hdf5.write(args.output, result)
     import numpy as np
 
+    from jaxcal.metrics import predicted_uncertainty
+
     n_est = int(np.isfinite(result.position).all(axis=1).sum())
+    pu = predicted_uncertainty(result)
+    pred = pu["predicted_rmse_m"]
     if args.json:
         print_json({"method": result.method, "dataset": result.dataset, "output": args.output,
-                    "estimated": n_est, "nodes": len(result.ids), "seconds": elapsed})
+                    "estimated": n_est, "nodes": len(result.ids), "seconds": elapsed,
+                    "partial": pu["partial"], "predicted_rmse_m": pred if np.isfinite(pred) else None})
     else:
-        print(f"{args.method}: {n_est}/{len(result.ids)} positions estimated in {elapsed:.2f} s -> {args.output}")
+        partial = f" ({pu['partial']} with a coordinate not fixed)" if pu["partial"] else ""
+        quality = f", predicted RMS uncertainty {pred:.3g} m" if np.isfinite(pred) else ", no covariance"
+        print(f"{args.method}: {n_est}/{len(result.ids)} positions estimated{partial}{quality} in {elapsed:.2f} s "
+              f"-> {args.output}")
     return 0
