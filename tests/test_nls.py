@@ -153,3 +153,30 @@ def test_robust_covariance_equals_numpy_cluster_sandwich_and_contains_the_model(
         assert np.linalg.eigvalsh(out - part).min() > -1e-12
     lam, vec = np.linalg.eigh(sand - model)
     np.testing.assert_allclose(out, model + (vec * np.maximum(lam, 0)) @ vec.T, atol=1e-12)
+
+
+def test_height_from_a_flat_path_is_nan_with_one_warning_line(caplog):
+    from types import SimpleNamespace
+
+    t = np.linspace(0, 2 * np.pi, 400)
+    flat = np.stack([5 * np.cos(t), 5 * np.sin(2 * t), 0 * t], 1)
+    hilly = flat + np.stack([0 * t, 0 * t, 1.5 * np.sin(3 * t)], 1)
+    # an anchor near the plane of a flat path: its height enters the ranges only to second order
+    # (h / r small everywhere) and trades off with the range bias; 3 m above it, it is fixed
+    low, high = np.array([1.0, 1.0, 0.1]), np.array([8.0, 0.0, 3.0])
+    assert ls.height_dop_ratio(flat, low) > 10 > 5 * ls.height_dop_ratio(flat, high)
+    pos = np.stack([flat, flat, hilly])
+    est = np.stack([low, high, low])
+    rng = np.linalg.norm(pos - est[:, None], axis=-1)
+    groups = SimpleNamespace(position=pos, range=rng, mask=np.ones(rng.shape, bool))
+    p = nls.NLSParams()
+    flag, zstd = ls.unobservable_height(groups, est, p)
+    assert flag.tolist() == [True, False, False] and zstd[0] == 0.0
+    ds = SimpleNamespace(anchor_ids=["low", "high", "hilly"], name="t")
+    with caplog.at_level("WARNING", logger="jaxcal"):
+        res = ls.finish(ds, "nls", p, groups, est, np.repeat(np.eye(3)[None], 3, 0) * 0.01, {})
+    assert np.isnan(res.position[0, 2]) and np.isfinite(res.position[0, :2]).all()
+    assert np.isnan(res.covariance[0, 2]).all() and np.isfinite(res.covariance[0, :2, :2]).all()
+    assert np.isfinite(res.position[1:]).all()
+    assert len(caplog.records) == 1 and "(low)" in caplog.text and "\n" not in caplog.records[0].getMessage()
+    assert res.params["info_unobservable_height"] == ["low"]

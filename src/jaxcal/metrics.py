@@ -428,13 +428,16 @@ def predicted_uncertainty(result: Result) -> dict:
 
 def evaluate_trajectory(result: Result, dataset: TrajectoryDataset) -> dict:
     """Anchor errors of a trajectory result (CONTRACT 2): `method`, `dataset`, `mean_error_m`,
-    `anchors` [{id, error_m}] (Euclidean error over the result's D axes; NaN without estimate),
+    `anchors` [{id, error_m}] (Euclidean error over the result's D axes; over the estimated ones where an
+    axis the path cannot observe is NaN; NaN without estimate),
     and `ecdf` of the anchor errors."""
     if dataset.anchor_truth is None:
         raise JaxcalError(f"{dataset.name}: no anchor truth to evaluate against")
     order = _match_order(result.ids, dataset.anchor_ids, "anchor ids")
     truth = truth_in_result_frame(result, dataset.anchor_truth[order])
-    err = np.linalg.norm(result.position - truth, axis=1)
+    diff = result.position - truth
+    has = np.isfinite(result.position).any(axis=1)  # a NaN height (unobservable axis): the axes estimated
+    err = np.where(has, np.sqrt(np.nansum(diff**2, axis=1)), np.nan)
     fin = err[np.isfinite(err)]
     return {
         "method": result.method,

@@ -642,8 +642,8 @@ def _pair_sandwich(free: Array, template: Array, mask: Array, c: Array, b: Array
 
     Repeated ranges of one pair share its systematic error (antenna delays, static multipath, an NLOS
     excess): averaging 400 epochs does not shrink it, so a covariance that counts every range as
-    independent is too small by about sqrt(epochs). Here each pair is one observation (its robust
-    location, `obs`) and the covariance is A^-1 B A^-1 with A = J^T J + prior and
+    independent is too small by about sqrt(epochs). Here each pair is one observation (its median summary,
+    `obs`, which does not depend on the fit) and the covariance is A^-1 B A^-1 with A = J^T J + prior and
     B = sum_k (e_k / (1 - h_k))^2 J_k^T J_k: the realised error of every pair, corrected for its leverage
     h_k (HC3; with one or two pairs per unknown, residuals are much smaller than errors). Every pair's
     residual counts at full weight, even where the fit's robust loss discounts it: a systematic error that
@@ -1018,9 +1018,8 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         pair_i, pair_j = jnp.asarray(_pad(uniq // m, size)), jnp.asarray(_pad(uniq % m, size))
         state = _irls_all(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb, p.solver, p.tol,
                           p.max_steps, p.irls_iters)
-        # one observation per pair, where the all-ranges fit puts it: what the posterior of estimate=mean
-        # sees, and the unit of the pair-level (sandwich) covariance of both estimates
-        obs_pairs = _pair_locations(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb)
+        if p.estimate == "mean":  # the posterior's pair observations: where the all-ranges fit puts them
+            obs_pairs = _pair_locations(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb)
 
     x_sub = np.asarray(state.x)
     x_frame_sub = to_frame(x_sub, int(remap[a0]), int(remap[a1]), int(remap[a2]))
@@ -1043,8 +1042,10 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     cov_free, s2 = _covariance(jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c,
                                state.b, obs, nb)
     cov_free = np.asarray(cov_free)
+    # the median summary, not the IRLS pair locations: those are weighted by their residuals at the fit,
+    # so they lean towards the fitted model and hide part of each pair's error (measured: NEES 3x larger)
     sand = np.asarray(_pair_sandwich(jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c,
-                                     state.b, obs_pairs, nb))[:free.size, :free.size]
+                                     state.b, obs_med, nb))[:free.size, :free.size]
     cov_free = covariance_union(cov_free, sand)
     offset, node_b, accept, rhat = float(state.c), np.asarray(state.b), float("nan"), float("nan")
     used, reason = "map", ""
