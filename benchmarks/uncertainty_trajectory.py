@@ -110,7 +110,8 @@ def main(argv=None) -> int:
     for m in methods:
         nees = [x["nees_per_dof"] for x in sims[m] if np.isfinite(x["nees_per_dof"])]
         cov = [x["coverage95"] for x in sims[m] if np.isfinite(x["coverage95"])]
-        print(json.dumps({"summary": m, "campaigns": len(sims[m]), "coverage95_mean": float(np.mean(cov)) if cov else None,
+        print(json.dumps({"summary": m, "campaigns": len(sims[m]),
+                          "coverage95_mean": float(np.mean(cov)) if cov else None,
                           "nees_dof_median": float(np.median(nees)) if nees else None,
                           "nees_dof_worst": float(np.max(nees)) if nees else None}), flush=True)
     return 0

@@ -198,6 +198,8 @@ class BatchSolution(eqx.Module):
             decided before any sampling), or when the chains did not mix (R-hat above `RHAT_MAX` or
             undefined).
         fallback_reason: why `estimate=mean` fell back to the fit ("" when it did not).
+        model_covariance: (N, D, D) the model's own covariance before the pair-level sandwich widened it
+            (posterior sample covariance with `estimate=mean`, the Laplace covariance otherwise).
     """
 
     position: np.ndarray
@@ -213,6 +215,7 @@ class BatchSolution(eqx.Module):
     mcmc_rhat: float = float("nan")
     estimate: str = "map"
     fallback_reason: str = ""
+    model_covariance: np.ndarray | None = None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1046,6 +1049,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     # so they lean towards the fitted model and hide part of each pair's error (measured: NEES 3x larger)
     sand = np.asarray(_pair_sandwich(jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c,
                                      state.b, obs_med, nb))[:free.size, :free.size]
+    cov_model = cov_free
     cov_free = covariance_union(cov_free, sand)
     offset, node_b, accept, rhat = float(state.c), np.asarray(state.b), float("nan"), float("nan")
     used, reason = "map", ""
@@ -1061,22 +1065,26 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         accept, rhat = float(acc), float(rh)
         if rhat <= RHAT_MAX and np.isfinite(mean).all() and np.isfinite(cov_s).all():
             x_frame_sub[mask] = mean[:f]
-            cov_free, offset, node_b = covariance_union(cov_s[:f, :f], sand), float(mean[f]), mean[f + 1:]
+            cov_model, offset, node_b = cov_s[:f, :f], float(mean[f]), mean[f + 1:]
+            cov_free = covariance_union(cov_model, sand)
             used = "mean"
         else:
             reason = f"the posterior chains did not mix (split R-hat {rhat:.2f}, limit {RHAT_MAX:.2f})"
     full_idx = np.flatnonzero(mask.ravel())
-    cov_all = np.zeros((m * p.dim, m * p.dim))
-    cov_all[np.ix_(full_idx, full_idx)] = cov_free
-    cov_nodes = np.stack([cov_all[k * p.dim:(k + 1) * p.dim, k * p.dim:(k + 1) * p.dim] for k in range(m)])
-    cov_nodes = 0.5 * (cov_nodes + np.swapaxes(cov_nodes, 1, 2))
-    bad = ~np.isfinite(cov_nodes).all(axis=(1, 2))
-    cov_nodes[bad] = np.nan
+
+    def per_node(cov_f):  # (F, F) over the free coordinates -> (N, D, D) blocks, NaN where undefined
+        cov_all = np.zeros((m * p.dim, m * p.dim))
+        cov_all[np.ix_(full_idx, full_idx)] = cov_f
+        blocks = np.stack([cov_all[k * p.dim:(k + 1) * p.dim, k * p.dim:(k + 1) * p.dim] for k in range(m)])
+        blocks = 0.5 * (blocks + np.swapaxes(blocks, 1, 2))
+        blocks[~np.isfinite(blocks).all(axis=(1, 2))] = np.nan
+        out = np.full((n, p.dim, p.dim), np.nan)
+        out[sub] = blocks
+        return out
 
     position = np.full((n, p.dim), np.nan)
     position[sub] = x_frame_sub
-    covariance = np.full((n, p.dim, p.dim), np.nan)
-    covariance[sub] = cov_nodes
+    covariance = per_node(cov_free)
     node_off = np.full(n, np.nan)
     node_off[sub] = node_b if chosen == "node" else 0.0
     return BatchSolution(
@@ -1084,6 +1092,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         offset_m=offset if chosen != "none" else 0.0, node_offset_m=node_off,
         cost=cost, start_costs=costs, residual_sigma_m=float(np.sqrt(s2)), bias=chosen, boot_rmse_m=boot,
         mcmc_accept=accept, mcmc_rhat=rhat, estimate=used, fallback_reason=reason,
+        model_covariance=per_node(cov_model),
     )
 
 
@@ -1106,7 +1115,9 @@ def warn_if_unmixed(sol: BatchSolution, p: BatchParams) -> bool:
     """Log one warning line (logger `jaxcal`) when `estimate=mean` fell back to the fit; True if so."""
     if p.estimate != "mean" or sol.estimate == "mean":
         return False
-    hint = "add ranges" if "R-hat" not in sol.fallback_reason else f"raise mcmc_steps (now {p.mcmc_steps}) or add ranges"
+    hint = "add ranges"
+    if "R-hat" in sol.fallback_reason:
+        hint = f"raise mcmc_steps (now {p.mcmc_steps}) or add ranges"
     logging.getLogger("jaxcal").warning(
         "batch: %s: reporting the fit (estimate=map) and its covariance instead; %s",
         sol.fallback_reason or "the posterior mean is not available", hint)

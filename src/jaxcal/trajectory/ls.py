@@ -216,7 +216,8 @@ def finish(dataset, method, p, groups, est, cov, info) -> Result:
             "%s: the platform path is flat (tag height spread up to %.2f m) for %d anchor(s) (%s): the ranges "
             "do not fix their height; left NaN, horizontal kept; survey the heights or record a path with "
             "height changes (or raise max_height_dop)",
-            method, float(np.nanmax(zstd[flat])), len(names), ", ".join(names[:8]) + (", ..." if len(names) > 8 else ""))
+            method, float(np.nanmax(zstd[flat])), len(names),
+            ", ".join(names[:8]) + (", ..." if len(names) > 8 else ""))
     info = dict(info, unobservable_height=[dataset.anchor_ids[a] for a in np.flatnonzero(flat)])
     params = as_dict(p)
     params.update({f"info_{k}": v for k, v in info.items()})
