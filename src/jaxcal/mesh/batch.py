@@ -622,11 +622,20 @@ def _covariance(free: Array, template: Array, mask: Array, c: Array, b: Array, o
 
 def covariance_union(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The covariance a + (b - a)_+ ((.)_+ the positive semi-definite part): at least as large as a and as
-    b in every direction (a + (b - a)_+ = b + (b - a)_-), symmetric PSD when a and b are."""
+    b in every direction (a + (b - a)_+ = b + (b - a)_-), symmetric PSD when a and b are. Coordinates
+    where b - a is not finite (a node the pairs do not fix) get NaN rows and columns."""
     a = 0.5 * (a + a.T)
     d = 0.5 * (b + b.T) - a
-    lam, vec = np.linalg.eigh(d)
-    out = a + (vec * np.maximum(lam, 0.0)) @ vec.T
+    # coordinates the ranges do not fix (a singular sandwich: inf / NaN) are undefined: NaN rows and columns
+    ok = np.isfinite(d).all(axis=0) & np.isfinite(d).all(axis=1) & (np.abs(d).max(axis=0, initial=0) < 1e150)
+    out = np.full_like(a, np.nan)
+    if ok.any():
+        sub = np.ix_(ok, ok)
+        try:
+            lam, vec = np.linalg.eigh(d[sub])
+        except np.linalg.LinAlgError:
+            return out
+        out[sub] = a[sub] + (vec * np.maximum(lam, 0.0)) @ vec.T
     return 0.5 * (out + out.T)
 
 
