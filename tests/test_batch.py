@@ -436,11 +436,8 @@ def test_posterior_mean_equals_importance_sampling_reference(rng):
     assert np.isfinite(sol.mcmc_accept) and sol.mcmc_rhat < 1.05 and sol.estimate == "mean"
     iu, ju = np.triu_indices(n, 1)
     ok = np.isfinite(r[0, iu, ju])
-    for draws in (400_000, 1_600_000):  # more draws where the proposal fits this seed's posterior less well
-        ref_mean, ref_cov, ess, mask = _posterior_reference(sol_map.position, sol_map.offset_m,
-                                                            r[0, iu, ju][ok], iu[ok], ju[ok], NU, draws, rng)
-        if ess > 2_000:
-            break
+    ref_mean, ref_cov, ess, mask = _posterior_reference(sol_map.position, sol_map.offset_m, r[0, iu, ju][ok],
+                                                        iu[ok], ju[ok], NU, 400_000, rng)
     assert ess > 2_000  # the reference itself is trustworthy (Monte Carlo error < 0.03 sd)
     sd = np.sqrt(np.diag(ref_cov))
     got = np.r_[sol.position[mask], sol.offset_m]
