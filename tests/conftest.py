@@ -28,9 +28,36 @@ def shared_path(*parts: str) -> Path:
     return p
 
 
+TEST_SEED = int(os.environ.get("JAXCAL_TEST_SEED", "12345"))
+
+
+def _seed_list(text: str) -> list[int]:
+    out = []
+    for part in filter(None, text.split(",")):
+        a, _, b = part.partition("-")
+        out.extend(range(int(a), int(b) + 1) if b else [int(a)])
+    return out
+
+
+def pytest_generate_tests(metafunc):
+    # JAXCAL_TEST_SEEDS="0-19" runs every test that uses `rng` once per seed, in one process (compilations
+    # are shared): the seed sweep that every assertion on random draws must pass.
+    seeds = _seed_list(os.environ.get("JAXCAL_TEST_SEEDS", ""))
+    if seeds and "rng_seed" in metafunc.fixturenames:
+        metafunc.parametrize("rng_seed", seeds, ids=[f"seed{s}" for s in seeds])
+
+
 @pytest.fixture
-def rng():
-    return np.random.default_rng(12345)
+def rng_seed():
+    return TEST_SEED
+
+
+@pytest.fixture
+def rng(rng_seed):
+    """The tests' random generator. Its seed is JAXCAL_TEST_SEED (default 12345), so the suite can be
+    run on other seeds (JAXCAL_TEST_SEEDS="0-19": every seed in one run): every assertion that depends on
+    random draws must hold on any of them."""
+    return np.random.default_rng(rng_seed)
 
 
 def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600, env: dict | None = None):

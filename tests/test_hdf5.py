@@ -102,3 +102,17 @@ def test_write_is_atomic(tmp_path):
         hdf5.write(p, object())
     assert p.read_bytes() == before
     assert [x.name for x in tmp_path.iterdir()] == ["m.h5"]
+
+
+def test_writer_refuses_a_covariance_that_is_not_psd(tmp_path):
+    base = dict(ids=["a", "b"], position=[[0, 0], [1, 0]], method="batch", dataset="x", frame="anchors:0,1,2")
+    bad = np.stack([np.eye(2), np.diag([1.0, -1e11])])
+    with pytest.raises(FormatError, match="'b'.*positive semi-definite"):
+        hdf5.write(tmp_path / "r.h5", Result(covariance=bad, **base))
+    asym = np.stack([np.eye(2), np.array([[1.0, 0.5], [0.0, 1.0]])])
+    with pytest.raises(FormatError, match="symmetric"):
+        hdf5.write(tmp_path / "r.h5", Result(covariance=asym, **base))
+    assert not (tmp_path / "r.h5").exists()
+    # NaN blocks (no estimate) and a NaN coordinate (unobservable axis) are not refused
+    ok = np.stack([np.full((2, 2), np.nan), np.array([[1.0, np.nan], [np.nan, np.nan]])])
+    hdf5.write(tmp_path / "r.h5", Result(covariance=ok, **base))

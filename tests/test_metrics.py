@@ -261,7 +261,30 @@ def test_covariance_consistency_known_answers():
     assert cc["nees_per_dof"] == pytest.approx(nees / 7)
     assert cc["error_rmse_m"] == pytest.approx(np.sqrt(np.mean([0.09, 0.05, 0.25, 0.25])))
     assert cc["predicted_rmse_m"] == pytest.approx(np.sqrt(np.mean([0.09, 0.05, 0.5, 0.75])))
+    # inside the 95 % ellipse: NEES 1 (1 dof, < 3.84), 2, 0.8 (2 dof, < 5.99), 1: all four
+    assert cc["coverage95"] == 1.0 and "h_nees_per_dof" not in cc
     assert metrics.covariance_consistency(_result(tf), ds) is None  # no covariance
+
+
+def test_covariance_consistency_trajectory_horizontal_vertical_and_nan_axis():
+    from jaxcal.data import TrajectoryDataset
+
+    truth = np.array([[0.0, 0, 3], [10, 0, 4], [0, 10, 5]])
+    ds = TrajectoryDataset(name="t", anchor_ids=["a", "b", "c"], tag_ids=["t"], lever_arm=[[0, 0, 0]],
+                           pose_time=[0.0, 1.0], pose_position=np.zeros((2, 3)), range_time=[0.5],
+                           range_anchor=[0], range_tag=[0], range=[1.0], anchor_truth=truth)
+    err = np.array([[0.1, 0.0, 0.3], [0.0, 0.2, -0.1], [0.0, 0.0, np.nan]])
+    cov = np.repeat(np.diag([0.01, 0.01, 0.01])[None], 3, axis=0)
+    res = Result(ids=["a", "b", "c"], position=truth + err, method="nls", dataset="t", frame="world",
+                 covariance=cov)
+    cc = metrics.covariance_consistency(res, ds)
+    assert cc["nodes"] == 3
+    assert cc["h_nees_per_dof"] == pytest.approx((1 + 4 + 0) / 6)
+    assert cc["v_nees_per_dof"] == pytest.approx((9 + 1) / 2)  # the NaN height is left out
+    assert cc["nees_per_dof"] == pytest.approx((1 + 9 + 4 + 1 + 0) / 8)
+    # chi2(3) 95 % = 7.81: a (NEES 10) outside, b (5) inside; c: 2 dof, NEES 0: inside
+    assert cc["coverage95"] == pytest.approx(2 / 3)
+    assert cc["v_error_rmse_m"] == pytest.approx(np.sqrt((0.09 + 0.01) / 2))
 
 
 def test_covariance_consistency_3d_takes_the_nearer_mirror_image():

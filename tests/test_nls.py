@@ -132,3 +132,51 @@ def test_cli_calibrate_gp_then_evaluate(tmp_path):
         "calibrate", f, "--method", "nls", "-o", tmp_path / "x.h5", "--set", "loss=tukey", env=env
     )
     assert_one_line_error(bad, "loss")
+
+
+def test_robust_covariance_equals_numpy_cluster_sandwich_and_contains_the_model():
+    rng = np.random.default_rng(3)
+    n, p, g = 60, 4, 6
+    jac = rng.normal(size=(n, p))
+    # errors correlated within stretches: a common shift per stretch of 10 consecutive entries
+    res = rng.normal(size=n) * 0.05 + np.repeat(rng.normal(size=g), n // g) * 0.3
+    mask = np.ones(n, bool)
+    mask[-4:] = False  # padding at the end
+    model = 0.01 * np.linalg.inv(jac.T @ jac)
+    out = np.asarray(nls.robust_covariance(model, jac * mask[:, None], res * mask, mask, g))
+    # reference: clusters by rank among the 56 valid entries
+    cl = (np.arange(56) * g) // 56
+    s = np.stack([(jac[:56][cl == c] * res[:56][cl == c, None]).sum(0) for c in range(g)])
+    a_inv = np.linalg.pinv(jac[:56].T @ jac[:56])
+    sand = g / (g - 1) * a_inv @ s.T @ s @ a_inv
+    for part in (model, sand):
+        assert np.linalg.eigvalsh(out - part).min() > -1e-12
+    lam, vec = np.linalg.eigh(sand - model)
+    np.testing.assert_allclose(out, model + (vec * np.maximum(lam, 0)) @ vec.T, atol=1e-12)
+
+
+def test_height_from_a_flat_path_is_nan_with_one_warning_line(caplog):
+    from types import SimpleNamespace
+
+    t = np.linspace(0, 2 * np.pi, 400)
+    flat = np.stack([5 * np.cos(t), 5 * np.sin(2 * t), 0 * t], 1)
+    hilly = flat + np.stack([0 * t, 0 * t, 1.5 * np.sin(3 * t)], 1)
+    # an anchor near the plane of a flat path: its height enters the ranges only to second order
+    # (h / r small everywhere) and trades off with the range bias; 3 m above it, it is fixed
+    low, high = np.array([1.0, 1.0, 0.1]), np.array([8.0, 0.0, 3.0])
+    assert ls.height_dop_ratio(flat, low) > 10 > 5 * ls.height_dop_ratio(flat, high)
+    pos = np.stack([flat, flat, hilly])
+    est = np.stack([low, high, low])
+    rng = np.linalg.norm(pos - est[:, None], axis=-1)
+    groups = SimpleNamespace(position=pos, range=rng, mask=np.ones(rng.shape, bool))
+    p = nls.NLSParams()
+    flag, zstd = ls.unobservable_height(groups, est, p)
+    assert flag.tolist() == [True, False, False] and zstd[0] == 0.0
+    ds = SimpleNamespace(anchor_ids=["low", "high", "hilly"], name="t")
+    with caplog.at_level("WARNING", logger="jaxcal"):
+        res = ls.finish(ds, "nls", p, groups, est, np.repeat(np.eye(3)[None], 3, 0) * 0.01, {})
+    assert np.isnan(res.position[0, 2]) and np.isfinite(res.position[0, :2]).all()
+    assert np.isnan(res.covariance[0, 2]).all() and np.isfinite(res.covariance[0, :2, :2]).all()
+    assert np.isfinite(res.position[1:]).all()
+    assert len(caplog.records) == 1 and "(low)" in caplog.text and "\n" not in caplog.records[0].getMessage()
+    assert res.params["info_unobservable_height"] == ["low"]

@@ -325,60 +325,119 @@ def evaluate_mesh(result: Result, dataset: MeshDataset) -> dict:
     }
 
 
-def covariance_consistency(result: Result, dataset: MeshDataset) -> dict | None:
-    """How well a mesh result's covariance predicts its actual errors (None without a covariance).
+def covariance_consistency(result: Result, dataset: MeshDataset | TrajectoryDataset) -> dict | None:
+    """How well a result's covariance predicts its actual errors (None without a covariance or truth).
 
-    Errors are taken in the result's frame (truth transformed into it; for 3-D, the truth or its mirror
-    image through the x-y plane, whichever is nearer), over the final positions of every node except a0
-    that has a finite estimate, covariance and truth. Coordinates the frame fixes
-    (variance <= 1e-12 m^2, e.g. a1's y) are left out of the normalised errors.
+    Mesh: errors are taken in the result's frame (truth transformed into it; for 3-D, the truth or its
+    mirror image through the x-y plane, whichever is nearer), over the final positions of every node except
+    a0. Trajectory: anchor errors in the world frame. Rows need a finite covariance block and truth; NaN
+    coordinates (an axis the data cannot observe) and coordinates the frame fixes (variance <= 1e-12 m^2,
+    e.g. a1's y) are left out of the normalised errors.
 
     Returns:
-        dict: `nodes` (how many were used), `error_rmse_m` (RMS of |error|), `predicted_rmse_m` (sqrt of
-        the mean covariance trace, what that RMS should be), `nees_per_dof` (sum of e^T C^-1 e over the
-        sum of free coordinates: 1 for a covariance that is right, > 1 when it is too small).
+        dict: `nodes` (rows used), `error_rmse_m` (RMS of |error|), `predicted_rmse_m` (sqrt of the mean
+        covariance trace, what that RMS should be), `nees_per_dof` (sum of e^T C^-1 e over the sum of free
+        coordinates: 1 for a covariance that is right, > 1 when it is too small), `coverage95` (share of
+        rows whose truth is inside the 95 % ellipse / ellipsoid), and for 3-D results the same RMS and NEES
+        for the horizontal (x, y) and vertical (z) parts: `h_error_rmse_m`, `h_predicted_rmse_m`,
+        `h_nees_per_dof`, `v_error_rmse_m`, `v_predicted_rmse_m`, `v_nees_per_dof`.
     """
+    from scipy.stats import chi2
+
     if result.covariance is None:
         return None
-    order = _match_order(result.ids, dataset.node_ids, "node ids")
-    truth = truth_in_result_frame(result, dataset.truth[order])
-    if truth.shape[1] == 3:  # ranges cannot tell a 3-D scene from its mirror image: take the nearer one
-        mirror = truth * np.array([1.0, 1.0, -1.0])
-        if np.nansum((result.position - mirror) ** 2) < np.nansum((result.position - truth) ** 2):
-            truth = mirror
-    anchors = result.frame_anchors()
-    a0 = anchors[0] if anchors is not None else -1
-    sq_err, trace, nees, dof = [], [], 0.0, 0
+    if isinstance(dataset, MeshDataset):
+        if dataset.truth is None:
+            return None
+        order = _match_order(result.ids, dataset.node_ids, "node ids")
+        truth = truth_in_result_frame(result, dataset.truth[order])
+        if truth.shape[1] == 3:  # ranges cannot tell a 3-D scene from its mirror image: take the nearer one
+            mirror = truth * np.array([1.0, 1.0, -1.0])
+            if np.nansum((result.position - mirror) ** 2) < np.nansum((result.position - truth) ** 2):
+                truth = mirror
+        anchors = result.frame_anchors()
+        a0 = anchors[0] if anchors is not None else -1
+    else:
+        if dataset.anchor_truth is None:
+            return None
+        order = _match_order(result.ids, dataset.anchor_ids, "anchor ids")
+        truth = truth_in_result_frame(result, dataset.anchor_truth[order])
+        a0 = -1
+    d = result.position.shape[1]
+    parts = {"": np.arange(d)}
+    if d == 3:
+        parts.update({"h_": np.arange(2), "v_": np.array([2])})
+    acc = {k: {"sq": [], "tr": [], "nees": 0.0, "dof": 0} for k in parts}
+    inside = []
     for k in range(len(result.ids)):
-        e, c = result.position[k] - truth[k], result.covariance[k]
-        if k == a0 or not (np.isfinite(e).all() and np.isfinite(c).all()):
+        e_all, c_all = result.position[k] - truth[k], np.asarray(result.covariance[k], dtype=np.float64)
+        if k == a0 or not np.isfinite(truth[k]).all():
             continue
-        free = np.diag(c) > 1e-12
-        sq_err.append(float(e @ e))
-        trace.append(float(np.trace(c)))
-        if free.any():
-            cf = c[np.ix_(free, free)]
-            nees += float(e[free] @ np.linalg.lstsq(cf, e[free], rcond=None)[0])
-            dof += int(free.sum())
-    if not sq_err:
+        for name, axes in parts.items():
+            e, c = e_all[axes], c_all[np.ix_(axes, axes)]
+            use = np.isfinite(e) & np.isfinite(np.diag(c))
+            if not use.any():
+                continue
+            e, c = e[use], c[np.ix_(use, use)]
+            if not np.isfinite(c).all():
+                continue
+            free = np.diag(c) > 1e-12
+            acc[name]["sq"].append(float(e @ e))
+            acc[name]["tr"].append(float(np.trace(c)))
+            if free.any():
+                q = float(e[free] @ np.linalg.lstsq(c[np.ix_(free, free)], e[free], rcond=None)[0])
+                acc[name]["nees"] += q
+                acc[name]["dof"] += int(free.sum())
+                if name == "":
+                    inside.append(q <= chi2.ppf(0.95, int(free.sum())))
+    if not acc[""]["sq"]:
         return None
-    return {
-        "nodes": len(sq_err),
-        "error_rmse_m": float(np.sqrt(np.mean(sq_err))),
-        "predicted_rmse_m": float(np.sqrt(np.mean(trace))),
-        "nees_per_dof": nees / dof if dof else float("nan"),
-    }
+    out = {"nodes": len(acc[""]["sq"])}
+    for name, a in acc.items():
+        if not a["sq"]:
+            continue
+        out[f"{name}error_rmse_m"] = float(np.sqrt(np.mean(a["sq"])))
+        out[f"{name}predicted_rmse_m"] = float(np.sqrt(np.mean(a["tr"])))
+        out[f"{name}nees_per_dof"] = a["nees"] / a["dof"] if a["dof"] else float("nan")
+    out["coverage95"] = float(np.mean(inside)) if inside else float("nan")
+    return out
+
+
+def predicted_uncertainty(result: Result) -> dict:
+    """What a result says about its own accuracy, without truth (for `calibrate`'s closing line).
+
+    Returns:
+        dict: `fixed` (rows with every coordinate estimated), `partial` (rows with some coordinate NaN,
+        e.g. a height the path cannot observe), `total`, and `predicted_rmse_m`: sqrt of the mean trace of
+        the finite covariance blocks over the estimated rows (NaN without a covariance).
+    """
+    pos = np.asarray(result.position, dtype=np.float64)
+    fin = np.isfinite(pos)
+    fixed = fin.all(axis=1)
+    partial = fin.any(axis=1) & ~fixed
+    traces = []
+    if result.covariance is not None:
+        for k in np.flatnonzero(fin.any(axis=1)):
+            c = np.asarray(result.covariance[k], dtype=np.float64)
+            d = np.diag(c)[fin[k]]
+            if np.isfinite(d).all():
+                traces.append(float(d.sum()))
+    return {"fixed": int(fixed.sum()), "partial": int(partial.sum()), "total": int(pos.shape[0]),
+            "predicted_rmse_m": float(np.sqrt(np.mean(traces))) if traces else float("nan")}
 
 
 def evaluate_trajectory(result: Result, dataset: TrajectoryDataset) -> dict:
     """Anchor errors of a trajectory result (CONTRACT 2): `method`, `dataset`, `mean_error_m`,
-    `anchors` [{id, error_m}] (Euclidean error over the result's D axes; NaN without estimate),
+    `anchors` [{id, error_m}] (Euclidean error over the result's D axes; over the estimated ones where an
+    axis the path cannot observe is NaN; NaN without estimate),
     and `ecdf` of the anchor errors."""
     if dataset.anchor_truth is None:
         raise JaxcalError(f"{dataset.name}: no anchor truth to evaluate against")
     order = _match_order(result.ids, dataset.anchor_ids, "anchor ids")
     truth = truth_in_result_frame(result, dataset.anchor_truth[order])
-    err = np.linalg.norm(result.position - truth, axis=1)
+    diff = result.position - truth
+    has = np.isfinite(result.position).any(axis=1)  # a NaN height (unobservable axis): the axes estimated
+    err = np.where(has, np.sqrt(np.nansum(diff**2, axis=1)), np.nan)
     fin = err[np.isfinite(err)]
     return {
         "method": result.method,

@@ -85,11 +85,18 @@ def run(args) -> int:
     hdf5.write(out.path, result)
     import numpy as np
 
+    from jaxcal.metrics import predicted_uncertainty
+
     n_est = int(np.isfinite(result.position).all(axis=1).sum())
+    pu = predicted_uncertainty(result)
+    pred = pu["predicted_rmse_m"]
     emit_json(args, {"method": result.method, "dataset": result.dataset, "output": args.output,
-                     "estimated": n_est, "nodes": len(result.ids), "seconds": elapsed, "overwrote": out.existed})
-    say(args, f"{args.method}: {n_est}/{len(result.ids)} positions estimated in {elapsed:.2f} s -> {args.output}"
-        f"{out.note()}")
+                     "estimated": n_est, "nodes": len(result.ids), "seconds": elapsed, "overwrote": out.existed,
+                     "partial": pu["partial"], "predicted_rmse_m": pred if np.isfinite(pred) else None})
+    partial = f" ({pu['partial']} with a coordinate not fixed)" if pu["partial"] else ""
+    quality = f", predicted RMS uncertainty {pred:.3g} m" if np.isfinite(pred) else ", no covariance"
+    say(args, f"{args.method}: {n_est}/{len(result.ids)} positions estimated{partial}{quality} in {elapsed:.2f} s "
+        f"-> {args.output}{out.note()}")
     return 0
 
 

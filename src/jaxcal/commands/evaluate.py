@@ -33,14 +33,7 @@ def run(args) -> int:
             f"rmse {fmt(report['rmse_m'])} m   final rmse {fmt(report['final_rmse_m'])} m   "
             f"aligned rmse {fmt(report['aligned_rmse_m'])} m"
         )
-        from jaxcal.metrics import covariance_consistency
-
-        cc = covariance_consistency(result, truth)
-        if cc is not None:  # text only: the JSON report is the contract's, key for key
-            print(
-                f"covariance: predicted rms {fmt(cc['predicted_rmse_m'])} m, actual {fmt(cc['error_rmse_m'])} m, "
-                f"NEES per coordinate {cc['nees_per_dof']:.2f} (1 = calibrated, > 1 = overconfident)"
-            )
+        _print_consistency(result, truth, fmt)
         print(f"{'node':<12}{'rmse [m]':>10}{'final [m]':>11}{'avail.':>8}")
         for n in report["nodes"]:
             print(
@@ -48,6 +41,27 @@ def run(args) -> int:
             )
     else:
         print(f"mean error {fmt(report['mean_error_m'])} m")
+        _print_consistency(result, truth, fmt)
         for a in report["anchors"]:
             print(f"{a['id']:<12}{fmt(a['error_m']):>10}")
     return 0
+
+
+def _print_consistency(result, truth, fmt) -> None:
+    """Text only (the JSON report is the contract's, key for key): does the covariance hold the truth?"""
+    from jaxcal.metrics import covariance_consistency
+
+    cc = covariance_consistency(result, truth)
+    if cc is None:
+        return
+    print(
+        f"covariance: 95 % ellipses hold the truth for {100 * cc['coverage95']:.0f} % of {cc['nodes']}; "
+        f"predicted rms {fmt(cc['predicted_rmse_m'])} m, actual {fmt(cc['error_rmse_m'])} m, "
+        f"NEES per coordinate {cc['nees_per_dof']:.2f} (1 = calibrated, > 1 = overconfident)"
+    )
+    for part, label in (("h_", "horizontal"), ("v_", "vertical")):
+        if f"{part}error_rmse_m" in cc:
+            print(
+                f"  {label:<10}: predicted rms {fmt(cc[part + 'predicted_rmse_m'])} m, "
+                f"actual {fmt(cc[part + 'error_rmse_m'])} m, NEES per coordinate {cc[part + 'nees_per_dof']:.2f}"
+            )

@@ -209,9 +209,32 @@ def _write_root(f, fmt: str, name: str, obj) -> None:
             f.attrs[k] = v
 
 
+def check_covariance(cov, ids) -> None:
+    """Refuse a result covariance that is not a covariance: every finite (D, D) block must be symmetric
+    positive semi-definite (to a relative 1e-9 of its scale); NaN entries of a block are left out with
+    their row and column (an unobservable coordinate). Raises FormatError naming the first bad id."""
+    if cov is None:
+        return
+    c = np.asarray(cov, dtype=np.float64)
+    for k in range(c.shape[0]):
+        fin = np.isfinite(np.diag(c[k]))
+        b = c[k][np.ix_(fin, fin)]
+        if b.size == 0:
+            continue
+        scale = max(float(np.max(np.abs(b))), 1e-300)
+        if not np.isfinite(b).all() or np.max(np.abs(b - b.T)) > 1e-9 * scale \
+                or np.min(np.linalg.eigvalsh(0.5 * (b + b.T))) < -1e-9 * scale:
+            name = ids[k] if k < len(ids) else str(k)
+            raise FormatError(f"covariance of {name!r} is not symmetric positive semi-definite; refusing to write it")
+
+
 def write(path: str | os.PathLike, obj: MeshDataset | TrajectoryDataset | Result) -> Path:
-    """Write `obj` to `path` atomically (`jaxcal.io.atomic`: temporary file, then rename). Returns the path."""
+    """Write `obj` to `path` atomically (`jaxcal.io.atomic`: temporary file, then rename). Returns the path.
+
+    A `Result` whose covariance is not symmetric positive semi-definite is refused (`check_covariance`)."""
     path = Path(path)
+    if isinstance(obj, Result):
+        check_covariance(obj.covariance, list(obj.ids))
     if path.parent and not path.parent.exists():
         raise FormatError(f"{path}: folder {path.parent} does not exist")
     if path.is_dir():

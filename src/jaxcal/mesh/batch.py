@@ -27,10 +27,12 @@ where the pair, not the single range, is the unit of information (repeated range
 systematic error), so it is not the overconfident Laplace covariance of the all-ranges fit (which
 treats every range as independent).
 
-Output frame: a0 at the origin, a1 on +x, a2 with y > 0 (CONTRACT 1.1). The covariance
-`sigma^2 (J^T W J)^-1` is computed in gauge-fixed coordinates of that frame (W = IRLS weights
-psi(e)/e, sigma^2 the weighted residual variance), so it is exactly zero for the coordinates the
-frame fixes.
+Output frame: a0 at the origin, a1 on +x, a2 with y > 0 (CONTRACT 1.1). Covariances are computed in
+gauge-fixed coordinates of that frame, so they are exactly zero for the coordinates the frame fixes. The
+reported covariance is at least the pair-level HC3 sandwich (`_pair_sandwich`: the realised error of every
+pair counted once, whatever the number of epochs) in every direction (`covariance_union`): with
+`estimate=map` it widens the Laplace covariance `sigma^2 (J^T W J)^-1` of the all-ranges fit (W = IRLS
+weights psi(e)/e), with `estimate=mean` the posterior sample covariance.
 """
 
 from __future__ import annotations
@@ -193,9 +195,13 @@ class BatchSolution(eqx.Module):
             (`bias=auto`; NaN otherwise).
         mcmc_accept, mcmc_rhat: `estimate=mean` only (NaN otherwise): the sampler's acceptance rate and
             the largest split R-hat over the free coordinates.
-        estimate: the estimate reported: `mean`, or `map` when asked for, or when the chains did not mix
-            (R-hat above `RHAT_MAX` or undefined: e.g. a node with a single range, whose posterior under
-            the heavy-tailed likelihood is improper, or fewer pairs than unknowns).
+        estimate: the estimate reported: `mean`, or `map` when asked for, when the measurement graph
+            makes the pair-level posterior improper or not locally identifiable (`posterior_defect`,
+            decided before any sampling), or when the chains did not mix (R-hat above `RHAT_MAX` or
+            undefined).
+        fallback_reason: why `estimate=mean` fell back to the fit ("" when it did not).
+        model_covariance: (N, D, D) the model's own covariance before the pair-level sandwich widened it
+            (posterior sample covariance with `estimate=mean`, the Laplace covariance otherwise).
     """
 
     position: np.ndarray
@@ -210,6 +216,8 @@ class BatchSolution(eqx.Module):
     mcmc_accept: float = float("nan")
     mcmc_rhat: float = float("nan")
     estimate: str = "map"
+    fallback_reason: str = ""
+    model_covariance: np.ndarray | None = None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -614,6 +622,77 @@ def _covariance(free: Array, template: Array, mask: Array, c: Array, b: Array, o
     return cov[:f, :f], s2
 
 
+def covariance_union(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The covariance a + (b - a)_+ ((.)_+ the positive semi-definite part): at least as large as a and as
+    b in every direction (a + (b - a)_+ = b + (b - a)_-), symmetric PSD when a and b are. Coordinates
+    where b - a is not finite (a node the pairs do not fix) get NaN rows and columns."""
+    a = 0.5 * (a + a.T)
+    d = 0.5 * (b + b.T) - a
+    # coordinates the ranges do not fix (a singular sandwich: inf / NaN) are undefined: NaN rows and columns
+    ok = np.isfinite(d).all(axis=0) & np.isfinite(d).all(axis=1) & (np.abs(d).max(axis=0, initial=0) < 1e150)
+    out = np.full_like(a, np.nan)
+    if ok.any():
+        sub = np.ix_(ok, ok)
+        try:
+            lam, vec = np.linalg.eigh(d[sub])
+        except np.linalg.LinAlgError:
+            return out
+        out[sub] = a[sub] + (vec * np.maximum(lam, 0.0)) @ vec.T
+    return 0.5 * (out + out.T)
+
+
+def _pair_scale(e: Array, real: Array, n_par: Array) -> Array:
+    """Robust scale [m] of pair errors: 1.4826 MAD, inflated for the fitted parameters (sqrt(M / (M - P)))."""
+    m = jnp.sum(real)
+    mad = jnp.nanmedian(jnp.where(real, jnp.abs(e), jnp.nan))
+    return jnp.maximum(1.4826 * mad * jnp.sqrt(m / jnp.maximum(m - n_par, 1.0)), 1e-6)
+
+
+@eqx.filter_jit
+def _pair_sandwich(free: Array, template: Array, mask: Array, c: Array, b: Array, obs: Observations,
+                   nb: _Numbers) -> Array:
+    """Heteroscedasticity-robust (HC3 sandwich) covariance of the free coordinates and offsets, with the
+    *pair* as the unit.
+
+    Repeated ranges of one pair share its systematic error (antenna delays, static multipath, an NLOS
+    excess): averaging 400 epochs does not shrink it, so a covariance that counts every range as
+    independent is too small by about sqrt(epochs). Here each pair is one observation (its median summary,
+    `obs`, which does not depend on the fit) and the covariance is A^-1 B A^-1 with A = J^T J + prior and
+    B = sum_k (e_k / (1 - h_k))^2 J_k^T J_k: the realised error of every pair, corrected for its leverage
+    h_k (HC3; with one or two pairs per unknown, residuals are much smaller than errors). Every pair's
+    residual counts at full weight, even where the fit's robust loss discounts it: a systematic error that
+    the geometry absorbs (an NLOS excess on a node's pairs moves the node) shows only partly in the
+    residuals, and the least-squares influence is the conservative reading of what is left. On families
+    of random NLOS networks with per-pair offsets this gives NEES per dof near 1 where the robust
+    (psi-weighted) sandwich stays 2-20 (benchmarks/uncertainty_families.py).
+
+    Args:
+        free, template, mask, c, b: the fit (as for `_covariance`); obs: one observation per pair;
+        nb: numbers of the fit.
+
+    Returns:
+        (F + 1 + n, F + 1 + n) covariance.
+    """
+    f, n_b = free.shape[0], b.shape[0]
+    idx = jnp.nonzero(mask.ravel(), size=f)[0]
+    theta0 = jnp.concatenate([free, jnp.reshape(c, (1,)), b])
+
+    def errs(theta):
+        x = template.ravel().at[idx].set(theta[:f]).reshape(template.shape)
+        return _errors(_State(x, theta[f], theta[f + 1:]), obs, nb)
+
+    real = obs.w > 0
+    e = jnp.where(real, errs(theta0), 0.0)
+    jac = jax.jacfwd(errs)(theta0) * real[:, None]
+    sc, sb = _prior_scales(nb)
+    prior = jnp.concatenate([jnp.zeros(f), jnp.stack([1.0 / sc**2]), jnp.full(n_b, 1.0 / sb**2)])
+    a_inv = jnp.linalg.inv(jac.T @ jac + jnp.diag(prior))
+    lev = jnp.clip(jnp.einsum("kp,pq,kq->k", jac, a_inv, jac), 0.0, 0.99)
+    meat = (jac.T * (e / (1.0 - lev)) ** 2) @ jac
+    cov = a_inv @ meat @ a_inv
+    return 0.5 * (cov + cov.T)
+
+
 _LEAPFROG = 16  # leapfrog steps per HMC transition of `posterior_mean`
 
 
@@ -669,10 +748,8 @@ def posterior_mean(free: Array, template: Array, mask: Array, c: Array, b: Array
 
     real = obs.w > 0
     e0 = errs(theta0)
-    m = jnp.sum(real)
     n_par = f + nb.use_c + nb.use_b * n_b
-    mad = jnp.nanmedian(jnp.where(real, jnp.abs(e0), jnp.nan))
-    scale = jnp.maximum(1.4826 * mad * jnp.sqrt(m / jnp.maximum(m - n_par, 1.0)), 1e-6)
+    scale = _pair_scale(e0, real, n_par)
     sc, sb = _prior_scales(nb)
     prior_prec = jnp.concatenate([jnp.zeros(f), jnp.stack([1.0 / sc**2]), jnp.full(n_b, 1.0 / sb**2)])
 
@@ -764,6 +841,53 @@ def posterior_mean(free: Array, template: Array, mask: Array, c: Array, b: Array
 
 # ---------------------------------------------------------------------------------------------
 # Public entry points
+
+
+def posterior_defect(i: np.ndarray, j: np.ndarray, n_nodes: int, dim: int, nu: float, n_offsets: int,
+                     node_ids: tuple[str, ...], seed: int = 0) -> str:
+    """Why the pair-level posterior of `estimate=mean` cannot be sampled, from the measurement graph
+    alone ("" when it can). Decided before sampling, so the fallback does not hang on a chain's path.
+
+    Two structural defects:
+    - a node with k distinct neighbours has, far from them, a likelihood that decays like
+      r^(-k (nu + 1)) (Student-t tails) over a volume growing like r^(dim - 1): with k (nu + 1) <= dim
+      the posterior (flat prior) is improper: its mean and covariance do not exist.
+    - the pairs do not fix the configuration to first order: the rigidity matrix (one row per measured
+      pair, d||x_i - x_j|| / dx at a random generic configuration) has rank below
+      dim n - dim (dim + 1) / 2 (generic rigidity), or there are fewer pairs than unknowns (positions and
+      offsets); the posterior then spreads along a continuum and its mean is no estimate.
+
+    Args:
+        i, j: (M,) node indices (0..n_nodes-1) of the measured unordered pairs (no duplicates needed).
+        n_nodes: number of (connected) nodes; dim: 2 or 3; nu: Student-t degrees of freedom;
+        n_offsets: fitted range offsets (common and per-node) that the pairs must also fix;
+        node_ids: ids of the n_nodes nodes (for the message); seed: of the random configuration.
+
+    Returns:
+        A one-line reason, or "".
+    """
+    pairs = {(min(a, b), max(a, b)) for a, b in zip(np.asarray(i).tolist(), np.asarray(j).tolist()) if a != b}
+    nbrs = [set() for _ in range(n_nodes)]
+    for a, b in pairs:
+        nbrs[a].add(b)
+        nbrs[b].add(a)
+    for k in range(n_nodes):
+        if len(nbrs[k]) * (nu + 1.0) <= dim:
+            names = ", ".join(node_ids[q] for q in sorted(nbrs[k]))
+            return (f"{node_ids[k]} ranges only {names}: its posterior under the Student-t likelihood "
+                    f"(nu={nu:g}) is improper")
+    n_unknown = dim * n_nodes - dim * (dim + 1) // 2
+    if len(pairs) < n_unknown + n_offsets:
+        return f"{len(pairs)} measured pairs for {n_unknown + n_offsets} unknowns"
+    x = np.random.default_rng(seed).normal(size=(n_nodes, dim))
+    rig = np.zeros((len(pairs), n_nodes * dim))
+    for row, (a, b) in enumerate(sorted(pairs)):
+        u = (x[a] - x[b]) / np.linalg.norm(x[a] - x[b])
+        rig[row, a * dim:(a + 1) * dim] = u
+        rig[row, b * dim:(b + 1) * dim] = -u
+    if np.linalg.matrix_rank(rig) < n_unknown:
+        return "the measured pairs do not make the network rigid (it can flex without changing a range)"
+    return ""
 
 
 def _bucket(m: int) -> int:
@@ -947,9 +1071,18 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
                                state.b, obs, nb)
     cov_free = np.asarray(cov_free)
     done(1)
+    # the median summary, not the IRLS pair locations: those are weighted by their residuals at the fit,
+    # so they lean towards the fitted model and hide part of each pair's error (measured: NEES 3x larger)
+    sand = np.asarray(_pair_sandwich(jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c,
+                                     state.b, obs_med, nb))[:free.size, :free.size]
+    cov_model = cov_free
+    cov_free = covariance_union(cov_free, sand)
     offset, node_b, accept, rhat = float(state.c), np.asarray(state.b), float("nan"), float("nan")
-    used = "map"
+    used, reason = "map", ""
     if p.estimate == "mean":
+        n_off = int(chosen != "none")  # per-node offsets have a proper prior of their own
+        reason = posterior_defect(mi, mj, m, p.dim, p.student_nu, n_off, tuple(ids[k] for k in sub), p.seed)
+    if p.estimate == "mean" and not reason:
         mean, cov_s, acc, rh = posterior_mean(
             jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c, state.b, obs_pairs, nb,
             jax.random.fold_in(key, 11), jnp.asarray(float(p.student_nu)), p.mcmc_chains, p.mcmc_steps)
@@ -959,27 +1092,34 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         done(1)
         if rhat <= RHAT_MAX and np.isfinite(mean).all() and np.isfinite(cov_s).all():
             x_frame_sub[mask] = mean[:f]
-            cov_free, offset, node_b = cov_s[:f, :f], float(mean[f]), mean[f + 1:]
+            cov_model, offset, node_b = cov_s[:f, :f], float(mean[f]), mean[f + 1:]
+            cov_free = covariance_union(cov_model, sand)
             used = "mean"
+        else:
+            reason = f"the posterior chains did not mix (split R-hat {rhat:.2f}, limit {RHAT_MAX:.2f})"
     full_idx = np.flatnonzero(mask.ravel())
-    cov_all = np.zeros((m * p.dim, m * p.dim))
-    cov_all[np.ix_(full_idx, full_idx)] = cov_free
-    cov_nodes = np.stack([cov_all[k * p.dim:(k + 1) * p.dim, k * p.dim:(k + 1) * p.dim] for k in range(m)])
-    cov_nodes = 0.5 * (cov_nodes + np.swapaxes(cov_nodes, 1, 2))
-    bad = ~np.isfinite(cov_nodes).all(axis=(1, 2))
-    cov_nodes[bad] = np.nan
+
+    def per_node(cov_f):  # (F, F) over the free coordinates -> (N, D, D) blocks, NaN where undefined
+        cov_all = np.zeros((m * p.dim, m * p.dim))
+        cov_all[np.ix_(full_idx, full_idx)] = cov_f
+        blocks = np.stack([cov_all[k * p.dim:(k + 1) * p.dim, k * p.dim:(k + 1) * p.dim] for k in range(m)])
+        blocks = 0.5 * (blocks + np.swapaxes(blocks, 1, 2))
+        blocks[~np.isfinite(blocks).all(axis=(1, 2))] = np.nan
+        out = np.full((n, p.dim, p.dim), np.nan)
+        out[sub] = blocks
+        return out
 
     position = np.full((n, p.dim), np.nan)
     position[sub] = x_frame_sub
-    covariance = np.full((n, p.dim, p.dim), np.nan)
-    covariance[sub] = cov_nodes
+    covariance = per_node(cov_free)
     node_off = np.full(n, np.nan)
     node_off[sub] = node_b if chosen == "node" else 0.0
     return BatchSolution(
         position=position, covariance=covariance,
         offset_m=offset if chosen != "none" else 0.0, node_offset_m=node_off,
         cost=cost, start_costs=costs, residual_sigma_m=float(np.sqrt(s2)), bias=chosen, boot_rmse_m=boot,
-        mcmc_accept=accept, mcmc_rhat=rhat, estimate=used,
+        mcmc_accept=accept, mcmc_rhat=rhat, estimate=used, fallback_reason=reason,
+        model_covariance=per_node(cov_model),
     )
 
 
@@ -1002,10 +1142,12 @@ def warn_if_unmixed(sol: BatchSolution, p: BatchParams) -> bool:
     """Log one warning line (logger `jaxcal`) when `estimate=mean` fell back to the fit; True if so."""
     if p.estimate != "mean" or sol.estimate == "mean":
         return False
+    hint = "add ranges"
+    if "R-hat" in sol.fallback_reason:
+        hint = f"raise mcmc_steps (now {p.mcmc_steps}) or add ranges"
     logging.getLogger("jaxcal").warning(
-        "batch: the posterior chains did not mix (split R-hat %.2f, limit %.2f): reporting the fit "
-        "(estimate=map) and its covariance instead; raise mcmc_steps (now %d) or add ranges",
-        sol.mcmc_rhat, RHAT_MAX, p.mcmc_steps)
+        "batch: %s: reporting the fit (estimate=map) and its covariance instead; %s",
+        sol.fallback_reason or "the posterior mean is not available", hint)
     return True
 
 
