@@ -19,4 +19,6 @@ __all__ = ["calibrate", "PGPParams"]
 
 def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> Result:
     """`--method parametric`: the grid filter with eq. (9) point-estimate likelihoods."""
-    return run_pgp(dataset, params, config, mode="parametric")[0]
+    from jaxcal.mesh.identify import mask_result
+
+    return mask_result(run_pgp(dataset, params, config, mode="parametric")[0], dataset.range)
