@@ -18,6 +18,12 @@ def run(args) -> int:
     result = load(args.result, ("result",))
     truth = load(args.truth, ("mesh", "trajectory"))
     report = evaluate(result, truth)
+    none: list[str] = []
+    if kind_of(truth) == "mesh":  # an optional field (CONTRACT: extend only by adding)
+        import numpy as np
+
+        none = [result.ids[i] for i in np.flatnonzero(~np.isfinite(result.position).all(axis=1))]
+        report["nodes_without_estimate"] = len(none)
     if args.json:
         report.pop("ecdf", None)
         print_json(report)
@@ -37,6 +43,9 @@ def run(args) -> int:
                 f"covariance: predicted rms {fmt(cc['predicted_rmse_m'])} m, actual {fmt(cc['error_rmse_m'])} m, "
                 f"NEES per coordinate {cc['nees_per_dof']:.2f} (1 = calibrated, > 1 = overconfident)"
             )
+        if none:
+            print(f"{len(none)} of {len(report['nodes'])} nodes have no estimate ({', '.join(none)}): "
+                  "the errors above are over the estimates that exist")
         print(f"{'node':<12}{'rmse [m]':>10}{'final [m]':>11}{'avail.':>8}")
         for n in report["nodes"]:
             print(

@@ -49,6 +49,7 @@ __all__ = [
     "describe",
     "mask_result",
     "undetermined_frame_result",
+    "with_auto_config",
     "filter_frame",
     "first_complete_epoch",
     "FRAME_UNDETERMINED",
@@ -437,3 +438,19 @@ def undetermined_frame_result(dataset, anchors, method: str, dim: int = 2, param
     res = Result(ids=dataset.node_ids, position=pos, method=method, dataset=dataset.name,
                  frame="anchors:{},{},{}".format(*anchors), params=dict(params or {}))
     return apply(res, ident, suggest_from=dataset.range)
+
+
+def with_auto_config(dataset):
+    """`dataset` with a configuration named `auto`: the triple `choose_frame` picks (unless the dataset
+    already has one of that name). Returns (dataset, (a0, a1, a2)); raises `JaxcalError` when no triple
+    has all three pairs measured."""
+    from jaxcal.errors import JaxcalError
+
+    table = dict(dataset.configs)
+    if "auto" in table:
+        return dataset, tuple(table["auto"])
+    best = choose_frame(dataset.range)
+    if best is None:
+        raise JaxcalError(f"{dataset.name}: --config auto: no three nodes range each other")
+    table["auto"] = best[0]
+    return dataclasses.replace(dataset, configs=table), best[0]
