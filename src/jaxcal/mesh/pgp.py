@@ -34,6 +34,15 @@ the
   each using the newest posteriors of the nodes before it (order-dependent, localises in fewer
   epochs).
 
+Beyond the paper (issue #18): when a frame pair (a0-a1, a0-a2, a1-a2) is never measured, or only late,
+the paper's rule never localises a1 (or a2) and hence nothing after it, although the network may fix
+every node. `frame="auto"` (default) then runs the filter in the frame of the best-connected,
+best-conditioned triple whose pairs are measured (`identify.filter_frame`) and moves every epoch's
+estimates into the configuration's frame through that epoch's a0, a1, a2 estimates (the final
+covariance to first order, `frame.frame_covariance`); `PGPInfo.frame` names the grids' frame. Where the
+configuration's pairs are measured early the filter is the paper's, unchanged. `calibrate` then sets the
+nodes the measured graph cannot fix (`identify.py`) to NaN rows, with one warning line.
+
 Defaults (`PGPParams`): 0.5 m cells, at most 8 hypotheses, `likelihood="window"`: the fast path
 of `fast.py`. Until every node is localised (the first few epochs) and whenever the mass could
 leave a window, an epoch is the direct evaluation on every cell; otherwise every node's epoch runs
