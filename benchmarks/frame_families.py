@@ -14,6 +14,7 @@ Prints one JSON line per run, then a Markdown table (median and worst over seeds
 
     PYTHONPATH=src python benchmarks/frame_families.py --seeds 20 --epochs 400
     PYTHONPATH=src python benchmarks/frame_families.py --torgau   # before/after on data/torgau.h5
+    python benchmarks/frame_families.py --table run1.log run2.log    # one table from several runs' lines
 """
 
 from __future__ import annotations
@@ -174,7 +175,16 @@ def main() -> None:
     ap.add_argument("--methods", default="cf,pgp,parametric,batch,pgp-direct")
     ap.add_argument("--torgau", action="store_true", help="before/after on data/torgau.h5 instead")
     ap.add_argument("--before", default="/work/main/src", help="source tree of the 'before' run")
+    ap.add_argument("--table", nargs="+", metavar="LOG", help="only print the table of these JSON-lines logs")
     args = ap.parse_args()
+    if args.table:
+        rows = []
+        for path in args.table:
+            for line in Path(path).read_text().splitlines():
+                if line.startswith("{") and '"family"' in line:
+                    rows.append(json.loads(line))
+        print(table(rows))
+        return
     logging.getLogger("jaxcal").setLevel(logging.ERROR)
     import jax
 

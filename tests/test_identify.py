@@ -224,3 +224,16 @@ def test_cli_summary_evaluate_info_and_config_auto(tmp_path, rng):
     assert ["n0", "n1"] in s["never_ranged"] and ["n0", "n6"] in s["never_ranged"]
     a = run_cli("calibrate", path, "--method", "cf", "--config", "auto", "-o", tmp_path / "a.h5")
     assert a.returncode == 0 and a.stdout.startswith("config auto: "), a.stdout + a.stderr
+
+
+def test_undetermined_frame_warning_names_links_and_suggests_a_frame(rng, caplog):
+    from jaxcal.data import Result
+
+    ds, _ = _noisy_mesh(rng, 7, 5, [(2, k) for k in range(7) if k != 2])  # a2 never ranges
+    res = Result(ids=ds.node_ids, position=np.zeros((7, 2)), method="cf", dataset="t", frame="anchors:0,1,2")
+    with caplog.at_level(logging.WARNING, logger="jaxcal"):
+        out = I.mask_result(res, ds.range)
+    assert np.isfinite(out.position).all(axis=1).tolist() == [True, True] + [False] * 5
+    (line,) = [r.getMessage() for r in caplog.records]
+    assert "frame (n0/n1/n2) not determined" in line and "n0-n2" in line and "n2 never ranged" in line
+    assert "suggested frame" in line and "--config auto" in line and "fixes 6/7" in line
