@@ -217,8 +217,11 @@ def test_cli_summary_evaluate_info_and_config_auto(tmp_path, rng):
     assert len(warn) == 1 and "n6 ranges only n5" in warn[0]
     e = run_cli("evaluate", out, "--truth", path, "--json")
     rep = json.loads(e.stdout)
-    assert {"method", "dataset", "rmse_m", "final_rmse_m", "aligned_rmse_m", "nodes"} <= set(rep)
-    assert rep["nodes_without_estimate"] == 1 and rep["rmse_m"] is not None
+    assert set(rep) == {"method", "dataset", "rmse_m", "final_rmse_m", "aligned_rmse_m", "nodes"}
+    assert rep["rmse_m"] is not None and rep["final_rmse_m"] is not None
+    assert [nd["id"] for nd in rep["nodes"] if nd["final_error_m"] is None] == ["n6"]
+    text = run_cli("evaluate", out, "--truth", path)
+    assert "1 of 7 nodes have no estimate (n6)" in text.stdout, text.stdout + text.stderr
     info = run_cli("info", path, "--json")
     s = json.loads(info.stdout)
     assert ["n0", "n1"] in s["never_ranged"] and ["n0", "n6"] in s["never_ranged"]
