@@ -12,7 +12,7 @@ def add_arguments(p) -> None:
     p.add_argument("dataset", nargs="?", help="a mesh or trajectory file")
     p.add_argument("--method", required=True, help="mesh: cf, pgp, ...; trajectory: gp, nls, ls, ...")
     p.add_argument("-o", "--output", default=None, help="result file to write (required)")
-    p.add_argument("--config", default=None, help=CONFIG_HELP)
+    p.add_argument("--config", default=None, help=CONFIG_HELP + " 'auto': the best-connected, best-conditioned triple.")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a method parameter")
     p.add_argument("--params", default=None, metavar="PARAMS.json", help="parameters from a JSON file (e.g. from `jaxcal tune`)")
     p.add_argument("--list-params", action="store_true",
@@ -64,9 +64,16 @@ def run(args) -> int:
     get_method("mesh" if hasattr(ds, "node_ids") else "trajectory", args.method)  # unknown method: now
     params = load_params_json(args.params) if args.params else {}
     params.update(parse_set(args.set))
+    from jaxcal.data import MeshDataset
+
+    mesh = isinstance(ds, MeshDataset)
+    if mesh and args.config == "auto":
+        from jaxcal.mesh.identify import with_auto_config
+
+        ds, tri = with_auto_config(ds)
+        say(args, "config auto: " + "/".join(ds.node_ids[i] for i in tri) + f" (nodes {tri[0]}, {tri[1]}, {tri[2]})")
     ds, config = resolve_config(ds, args.config)
     t0 = time.perf_counter()
-    from jaxcal.data import MeshDataset
     from jaxcal.methods import WITH_PROGRESS
     from jaxcal.progress import progress_bar
 
@@ -87,15 +94,24 @@ def run(args) -> int:
 
     from jaxcal.metrics import predicted_uncertainty
 
-    n_est = int(np.isfinite(result.position).all(axis=1).sum())
+    est = np.isfinite(result.position).all(axis=1)
+    n_est, n = int(est.sum()), len(result.ids)
+    missing = [result.ids[i] for i in np.flatnonzero(~est)]
+    fixed = None
+    if mesh and result.frame_anchors() is not None:
+        from jaxcal.mesh.identify import identify_ranges
+
+        fixed = identify_ranges(ds.range, result.frame_anchors(), result.position.shape[1], ids=ds.node_ids).fixed
     pu = predicted_uncertainty(result)
     pred = pu["predicted_rmse_m"]
     emit_json(args, {"method": result.method, "dataset": result.dataset, "output": args.output,
-                     "estimated": n_est, "nodes": len(result.ids), "seconds": elapsed, "overwrote": out.existed,
-                     "partial": pu["partial"], "predicted_rmse_m": pred if np.isfinite(pred) else None})
+                     "estimated": n_est, "nodes": n, "not_placed": n - n_est, "not_placed_ids": missing,
+                     "fixed_by_ranges": None if fixed is None else int(fixed.sum()), "seconds": elapsed,
+                     "overwrote": out.existed, "partial": pu["partial"],
+                     "predicted_rmse_m": pred if np.isfinite(pred) else None})
     partial = f" ({pu['partial']} with a coordinate not fixed)" if pu["partial"] else ""
     quality = f", predicted RMS uncertainty {pred:.3g} m" if np.isfinite(pred) else ", no covariance"
-    say(args, f"{args.method}: {n_est}/{len(result.ids)} positions estimated{partial}{quality} in {elapsed:.2f} s "
+    say(args, _summary(args.method, result.ids, est, fixed) + f"{partial}{quality} in {elapsed:.2f} s "
         f"-> {args.output}{out.note()}")
     return 0
 
@@ -114,3 +130,23 @@ def _stages(method: str, params: dict) -> int:
         p = with_overrides(GPParams(), params)
         return 1 if p.mean == "anchor" else p.stages
     return 0
+
+
+def _summary(method: str, ids, est, fixed) -> str:
+    """The summary line: a success line only when every node was placed; otherwise how many were not,
+    and which of them the ranges would have fixed (a method placing fewer than it could)."""
+    n, n_est = len(ids), int(est.sum())
+    line = f"{method}: {n_est}/{n} positions estimated"
+    if n_est == n:
+        return line
+    line += f", {n - n_est} NOT placed"
+    if fixed is None:
+        return line + " (" + ", ".join(ids[i] for i in range(n) if not est[i]) + ")"
+    could = [ids[i] for i in range(n) if fixed[i] and not est[i]]
+    cannot = [ids[i] for i in range(n) if not fixed[i] and not est[i]]
+    parts = []
+    if cannot:
+        parts.append("not fixed by the ranges: " + ", ".join(cannot))
+    if could:
+        parts.append(f"fixed by the ranges but not placed by {method}: " + ", ".join(could))
+    return line + " (" + "; ".join(parts) + ")"

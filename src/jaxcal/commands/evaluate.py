@@ -20,6 +20,11 @@ def run(args) -> int:
     result = load(args.result, ("result",))
     truth = load(args.truth, ("mesh", "trajectory"))
     report = evaluate(result, truth)
+    none: list[str] = []
+    if kind_of(truth) == "mesh":  # text only: the JSON report is the contract's, key for key (a node
+        import numpy as np  # without an estimate has "final_error_m": null there)
+
+        none = [result.ids[i] for i in np.flatnonzero(~np.isfinite(result.position).all(axis=1))]
     if args.json:
         report.pop("ecdf", None)
         print_json(report)
@@ -34,6 +39,9 @@ def run(args) -> int:
             f"aligned rmse {fmt(report['aligned_rmse_m'])} m"
         )
         _print_consistency(result, truth, fmt)
+        if none:
+            print(f"{len(none)} of {len(report['nodes'])} nodes have no estimate ({', '.join(none)}): "
+                  "the errors above are over the estimates that exist")
         print(f"{'node':<12}{'rmse [m]':>10}{'final [m]':>11}{'avail.':>8}")
         for n in report["nodes"]:
             print(

@@ -32,6 +32,13 @@ def summarise(obj) -> dict:
         measured = np.isfinite(rng)
         k, n = obj.n_epochs, obj.n_nodes
         pairs = max(n * (n - 1), 1)
+        from jaxcal.mesh.identify import identify_ranges, measured_pairs
+
+        pair_seen = measured_pairs(rng)
+        never = [[obj.node_ids[i], obj.node_ids[j]] for i in range(n) for j in range(i + 1, n) if not pair_seen[i, j]]
+        named = (dict(obj.configs) or {"default": (0, 1, 2)}) if n >= 3 else {}
+        # what each frame configuration lets a method place (`jaxcal.mesh.identify`)
+        frames = {c: identify_ranges(rng, v, ids=obj.node_ids) for c, v in named.items()}
         out.update(
             name=obj.name,
             nodes=list(obj.node_ids),
@@ -48,6 +55,9 @@ def summarise(obj) -> dict:
                 for i, nid in enumerate(obj.node_ids)
             },
             pair_coverage=float((measured.any(axis=0).sum()) / pairs),
+            never_ranged=never,
+            frames={c: {"fixed": int(f.n_fixed), "not_fixed": [r for r in f.reason if r]}
+                    for c, f in frames.items()},
         )
     elif kind == "trajectory":
         r = obj.n_ranges
@@ -120,6 +130,11 @@ def run(args) -> int:
               f"   pairs ever measured: {100 * s['pair_coverage']:.1f} %")
         if s["configs"]:
             print("  configurations: " + ", ".join(f"{c}={tuple(v)}" for c, v in s["configs"].items()))
+        nr = s["never_ranged"]
+        print(f"  pairs never ranged: {len(nr)}" + (": " + ", ".join(f"{a}-{b}" for a, b in nr) if nr else ""))
+        for c, f in s["frames"].items():
+            why = "; ".join(f["not_fixed"])
+            print(f"  frame {c}: the ranges fix {f['fixed']}/{len(s['nodes'])} nodes" + (f" ({why})" if why else ""))
         print("  availability per node (share of epoch x peer slots with a range):")
         for nid, a in s["availability"].items():
             print(f"    {nid:>12s}  {100 * a:6.1f} %")

@@ -334,8 +334,11 @@ class LiveCalibrator:
         cov = self._mean_cov()
         cov[~np.isfinite(track).all(axis=2).any(axis=0)] = np.nan
         a = [self.ids.index(s) for s in self.frame]
-        return Result(
+        res = Result(
             ids=list(dataset.node_ids), position=track[-1], method="pgp", dataset=dataset.name,
             frame=f"anchors:{a[0]},{a[1]},{a[2]}", params=as_dict(self.params), covariance=cov,
             track_time=np.asarray(dataset.time, np.float64), track_position=track, software=_software(),
         )
+        from jaxcal.mesh.identify import mask_result
+
+        return mask_result(res, dataset.range)  # what the ranges cannot fix: NaN rows + one warning line

@@ -1166,13 +1166,20 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None,
     """
     from jaxcal import __version__
 
+    from jaxcal.mesh import identify
+
     p = with_overrides(BatchParams(), params)
     anchors = dataset.config(config)
+    empty = identify.undetermined_frame_result(dataset, anchors, "batch", p.dim, as_dict(p))
+    if empty is not None:  # the ranges do not fix the frame: nothing to fit (one warning line)
+        return empty
     sol = solve(dataset.range, anchors, p, dataset.node_ids, progress=progress)
     warn_if_unmixed(sol, p)
     p = eqx.tree_at(lambda q: (q.bias, q.estimate), p, (sol.bias, sol.estimate))  # record what was used
-    return Result(
+    res = Result(
         ids=dataset.node_ids, position=sol.position, method="batch", dataset=dataset.name,
         frame="anchors:" + ",".join(str(a) for a in anchors), params=as_dict(p),
         covariance=sol.covariance, software=f"jaxcal {__version__}",
     )
+    # nodes the measured graph cannot fix (one neighbour, a flexible part) become NaN rows + a warning
+    return identify.mask_result(res, dataset.range)

@@ -16,6 +16,12 @@ Per epoch k, with z_ij the measured distance (the mean of i->j and j->i when bot
    `anchors_only=True` the references are a0, a1, a2 only (the stricter rule the paper's Fig. 10
    discusses: a node whose range to a1 is missing is never placed).
    Anything not placeable is NaN for that epoch, never an error.
+   Beyond the paper: an epoch whose own frame cannot be built (a missing a0-a1, a0-a2 or a1-a2 range)
+   is placed in another well-connected frame by the same rule and moved into the configuration's frame
+   through its placed a0, a1, a2 (`_proxy`), so a frame pair that never ranges does not leave the whole
+   track empty (issue #18); when most epochs lack their own frame, the final positions are the proxy
+   frame's medians moved through the median a0, a1, a2. Epochs with their own frame are unchanged.
+   Nodes the measured graph cannot fix at all (`identify.py`) are NaN rows, with one warning line.
 3. The final position of a node is the component-wise median of its per-epoch fixes (robust to the
    NLOS outlier epochs); NaN when it was never placed. The result keeps the per-epoch track, so the
    availability of a node (Fig. 10) is the fraction of epochs with a fix.
@@ -169,6 +175,72 @@ def place_epochs(
     return np.asarray(out, dtype=np.float64)
 
 
+def _proxy(range_m, dist, track, anchors, p: ClosedFormParams, n_proxy: int = 3):
+    """Track and final positions from other frames where the configuration's own cannot be built.
+
+    Up to `n_proxy` well-connected triples (`identify.choose_frame`, best first) are tried: every epoch
+    is placed in the triple's frame by the same rule, the per-node medians are taken there, and the
+    triple whose medians best reproduce the median ranges of the pairs touching a0, a1, a2 is preferred
+    (the frame is only as good as those three nodes). Epochs without their own frame are moved into the
+    configuration's frame through that epoch's a0, a1, a2 (`frame.to_frame_track`), from the preferred
+    triple or, where it does not place a0, a1, a2 that epoch, the next; the final
+    positions are the proxy's medians moved through the median a0, a1, a2 (one noisy epoch of a1
+    rotates everything, the median does not).
+
+    Returns:
+        (track, final or None): final is None when the own frame holds in most epochs (the paper's
+        per-node median of the track stands) or no proxy places a0, a1 and a2.
+    """
+    from jaxcal.mesh.frame import to_frame, to_frame_track
+    from jaxcal.mesh.identify import choose_frame
+
+    a0, a1, a2 = anchors
+    own = np.isfinite(track[:, [a1, a2]]).all(axis=(1, 2))
+    if own.all() or track.shape[0] == 0:
+        return track, None
+    med_d = _nanmedian(dist)
+    near = np.zeros(med_d.shape, dtype=bool)
+    near[[a0, a1, a2], :] = True
+    near = (near | near.T) & np.isfinite(med_d)
+    found_all, tried = [], [tuple(sorted(anchors))]
+    for _ in range(n_proxy):
+        found = choose_frame(range_m, exclude=tried)
+        if found is None:
+            break
+        tri = found[0]
+        tried.append(tuple(sorted(tri)))
+        tr = place_epochs(dist, tri, p)
+        med = _nanmedian(tr)
+        if not np.isfinite(med[[a0, a1, a2]]).all():
+            continue
+        dm = np.linalg.norm(med[:, None] - med[None], axis=-1)
+        res = np.abs(dm - med_d)[near & np.isfinite(dm)]
+        found_all.append((float(np.median(res)) if res.size else np.inf, len(found_all), tr, med))
+    if not found_all:
+        return track, None
+    found_all.sort(key=lambda t: t[:2])
+    _, _, tr, med = found_all[0]
+    out = track.copy()
+    for *_, tr_k, _ in found_all:  # the best proxy first; epochs where it fails from the next ones
+        todo = ~own & ~np.isfinite(out[:, [a0, a1, a2]]).all(axis=(1, 2))
+        out[todo] = to_frame_track(tr_k[todo], a0, a1, a2)
+    try:
+        final = to_frame(med, a0, a1, a2)
+    except ValueError:
+        final = None
+    return out, (None if own.mean() >= 0.5 else final)
+
+
+def _nanmedian(x: np.ndarray) -> np.ndarray:
+    """Median over axis 0 ignoring NaN, NaN where there is no value (without the all-NaN warning)."""
+    x = np.asarray(x, dtype=np.float64)
+    srt = np.sort(x, axis=0)  # NaN last
+    cnt = np.isfinite(x).sum(axis=0)
+    lo = np.take_along_axis(srt, np.maximum((cnt - 1) // 2, 0)[None], axis=0)[0]
+    hi = np.take_along_axis(srt, np.maximum(cnt // 2, 0)[None], axis=0)[0]
+    return np.where(cnt > 0, 0.5 * (lo + hi), np.nan)
+
+
 def calibrate(
     dataset: MeshDataset,
     params: Mapping[str, Any] | ClosedFormParams | None = None,
@@ -191,12 +263,16 @@ def calibrate(
         else with_overrides(ClosedFormParams(), params)
     )
     anchors = dataset.config(config)
-    track = place_epochs(symmetrise(dataset.range), anchors, p)
+    dist = symmetrise(dataset.range)
+    track = place_epochs(dist, anchors, p)
+    track, proxy_final = _proxy(dataset.range, dist, track, anchors, p)
     has = np.isfinite(track).all(axis=2)  # (K, N)
     final = np.full((dataset.n_nodes, 2), np.nan)
     for i in np.flatnonzero(has.any(axis=0)):
         final[i] = np.median(track[has[:, i], i], axis=0)
-    return Result(
+    if proxy_final is not None:
+        final = proxy_final
+    res = Result(
         ids=dataset.node_ids,
         position=final,
         method="cf",
@@ -206,3 +282,6 @@ def calibrate(
         track_time=dataset.time,
         track_position=track,
     )
+    from jaxcal.mesh.identify import mask_result
+
+    return mask_result(res, dataset.range)

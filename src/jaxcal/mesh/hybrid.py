@@ -13,6 +13,9 @@ covariance sampled around that optimum (`batch.posterior_mean`).
 Parameters: keys prefixed `pgp.` or `batch.` go to that stage (e.g. `--set pgp.cell_m=0.25 --set
 batch.loss=huber`); an unprefixed key goes to every stage that knows it (e.g. `sigma_r`), and is an error if
 neither does.
+
+Nodes the measured graph cannot fix in the frame (`identify.py`) are NaN rows with one warning line; a frame
+the ranges do not determine gives a0 alone, without running either stage.
 """
 
 from __future__ import annotations
@@ -69,10 +72,15 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
     """
     from jaxcal import __version__
 
+    from jaxcal.mesh import identify
+
     p_over, b_over = split_params(params)
     b = with_overrides(batch.BatchParams(), b_over)
-    res_pgp, _ = pgp.run_pgp(dataset, p_over, config)
     anchors = dataset.config(config)
+    empty = identify.undetermined_frame_result(dataset, anchors, "pgp+batch", b.dim)
+    if empty is not None:  # the ranges do not fix the frame: nothing to fit (one warning line)
+        return empty
+    res_pgp, _ = pgp.run_pgp(dataset, p_over, config)
     sol = batch.solve(dataset.range, anchors, b, dataset.node_ids, extra_starts=res_pgp.position[None])
     batch.warn_if_unmixed(sol, b)
     # record what was used: bias=auto resolved, estimate=mean or its fallback to the fit
@@ -90,7 +98,7 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
     track_position = res_pgp.track_position
     if track_position is not None and track_position.shape[-1] != position.shape[1]:
         track_position = None  # a 3-D refinement has no 2-D track to keep
-    return Result(
+    res = Result(
         ids=dataset.node_ids, position=position, method="pgp+batch", dataset=dataset.name,
         frame="anchors:" + ",".join(str(a) for a in anchors),
         params={**{f"pgp.{k}": v for k, v in res_pgp.params.items()},
@@ -99,3 +107,4 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
         track_time=res_pgp.track_time if track_position is not None else None,
         track_position=track_position, software=f"jaxcal {__version__}",
     )
+    return identify.mask_result(res, dataset.range)  # what the ranges cannot fix: NaN rows + a warning

@@ -20,7 +20,10 @@ __all__ = ["calibrate", "PGPParams"]
 def calibrate(
     dataset: MeshDataset, params=None, config: str | None = None, progress=None
 ) -> Result:
-    """`--method parametric`: the grid filter with eq. (9) point-estimate likelihoods.
+    """`--method parametric`: the grid filter with eq. (9) point-estimate likelihoods; nodes the ranges
+    cannot fix in the frame (`identify.py`) are NaN rows, named in one warning line.
 
     `progress`: optional callback called with the epochs done since its last call."""
-    return run_pgp(dataset, params, config, mode="parametric", progress=progress)[0]
+    from jaxcal.mesh.identify import mask_result
+
+    return mask_result(run_pgp(dataset, params, config, mode="parametric", progress=progress)[0], dataset.range)

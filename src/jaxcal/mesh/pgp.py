@@ -34,6 +34,15 @@ the
   each using the newest posteriors of the nodes before it (order-dependent, localises in fewer
   epochs).
 
+Beyond the paper (issue #18): when a frame pair (a0-a1, a0-a2, a1-a2) is never measured, or only late,
+the paper's rule never localises a1 (or a2) and hence nothing after it, although the network may fix
+every node. `frame="auto"` (default) then runs the filter in the frame of the best-connected,
+best-conditioned triple whose pairs are measured (`identify.filter_frame`) and moves every epoch's
+estimates into the configuration's frame through that epoch's a0, a1, a2 estimates (the final
+covariance to first order, `frame.frame_covariance`); `PGPInfo.frame` names the grids' frame. Where the
+configuration's pairs are measured early the filter is the paper's, unchanged. `calibrate` then sets the
+nodes the measured graph cannot fix (`identify.py`) to NaN rows, with one warning line.
+
 Defaults (`PGPParams`): 0.5 m cells, at most 8 hypotheses, `likelihood="window"`: the fast path
 of `fast.py`. Until every node is localised (the first few epochs) and whenever the mass could
 leave a window, an epoch is the direct evaluation on every cell; otherwise every node's epoch runs
@@ -131,6 +140,11 @@ class PGPParams(eqx.Module):
         nlos_mean_m: mean NLOS excess range [m] of the mixture (default 1 m: Table I's NLOS
             median error 0.69 m; its mean 3.78 m is driven by rare long outliers, which `p_out`
             covers).
+        frame: which frame the filter runs in (`identify.filter_frame`): "auto" (default) the
+            configuration's own when its three pairs are measured early (the paper's rule), else the
+            best-connected triple, the track then moved into the configuration's frame epoch by
+            epoch; "direct": always the configuration's own (the paper; a1 without a range to a0
+            is never placed, nor anything after it); "proxy": always the best-connected triple.
     """
 
     cell_m: float = 0.5
@@ -156,8 +170,10 @@ class PGPParams(eqx.Module):
     range_model: str = "gaussian"
     nlos_weight: float = 0.2
     nlos_mean_m: float = 1.0
+    frame: str = "auto"
 
 
+FRAMES = ("auto", "direct", "proxy")
 LIKELIHOODS = ("window", "direct", "sparse", "dense")
 RANGE_MODELS = ("gaussian", "mixture")
 # PGPParams fields that are arrays in `FilterParams` (sweeps and tuning change them without
@@ -206,6 +222,7 @@ def _validate(p: PGPParams) -> None:
         p.likelihood in LIKELIHOODS,
         f"likelihood: one of {', '.join(LIKELIHOODS)}; got {p.likelihood!r}",
     )
+    need(p.frame in FRAMES, f"frame: one of {', '.join(FRAMES)}; got {p.frame!r}")
     need(
         p.update_order in ("jacobi", "gauss-seidel"),
         f"update_order: jacobi or gauss-seidel; got {p.update_order!r}",
@@ -313,6 +330,8 @@ class PGPInfo(eqx.Module):
         log_mass: (K, N) log of the posterior mass after each epoch's update (0 up to rounding).
         raw_track: (K, N, 2) eq. (13) estimates before smoothing [m].
         localised: (N,) whether each node became localised.
+        frame: the frame of `axis_m` and the grids, `anchors:b0,b1,b2`: the configuration's own, or
+            the proxy frame the filter ran in (`PGPParams.frame`; the result is in the configuration's).
     """
 
     axis_m: np.ndarray
@@ -322,6 +341,7 @@ class PGPInfo(eqx.Module):
     log_mass: np.ndarray
     raw_track: np.ndarray
     localised: np.ndarray
+    frame: str = eqx.field(static=True, default="")
 
 
 def symmetric_ranges(r: np.ndarray) -> np.ndarray:
@@ -961,15 +981,18 @@ def prepare(
     config: str | None,
     mode: str = "pgp",
     snapshot_epochs=(),
+    anchors=None,
 ):
     """Host-side setup: node order, grid, masks and arrays for `_filter`.
+
+    `anchors` (a0, a1, a2) overrides the configuration's frame (the proxy frame of `run_pgp`).
 
     Returns:
         (cfg, prm, inp, logpost0, order) where `order[k]` is the dataset index of filter node k.
     """
     _validate(params)
     n = dataset.n_nodes
-    order = _node_order(n, dataset.config(config))
+    order = _node_order(n, dataset.config(config) if anchors is None else anchors)
     z = symmetric_ranges(np.asarray(dataset.range, dtype=np.float64))[:, order][:, :, order]
     radius = G.extent_radius(z, 0, params.margin_m, params.extent_m)
     grid = G.make_grid(radius, params.cell_m)
@@ -1121,7 +1144,9 @@ def run_pgp(
         params = with_overrides(PGPParams(), params)
     if dataset.n_epochs == 0:
         raise JaxcalError(f"{dataset.name}: no epochs to calibrate from")
-    cfg, prm, inp, logpost0, order = prepare(dataset, params, config, mode, snapshot_epochs)
+    a = dataset.config(config)
+    b = a if params.frame == "direct" else _filter_anchors(dataset, a, params.frame)
+    cfg, prm, inp, logpost0, order = prepare(dataset, params, config, mode, snapshot_epochs, b)
     st, out = run_chunked(cfg, prm, inp, logpost0, progress=progress)
     cells = cfg.grid.cells(logpost0.dtype)
     n = logpost0.shape[0]
@@ -1133,9 +1158,11 @@ def run_pgp(
     loc_any = np.isfinite(est).all(axis=2).any(axis=0)
     final = est[-1]
     cov = np.asarray(cov, dtype=np.float64)[inv]
-    a = dataset.config(config)
-    cov = cov + cell_variance(cfg.grid.cell_m, n, a)
+    cov = cov + cell_variance(cfg.grid.cell_m, n, b)
     cov[~loc_any] = np.nan
+    if b != a:  # proxy frame: every epoch moved into the configuration's frame by its a0, a1, a2
+        final, cov, est = _to_config_frame(final, cov, est, a)
+        loc_any = np.isfinite(est).all(axis=2).any(axis=0)
     res = Result(
         ids=dataset.node_ids,
         position=final,
@@ -1156,8 +1183,37 @@ def run_pgp(
         log_mass=np.asarray(out.log_mass, dtype=np.float64)[:, inv],
         raw_track=raw,
         localised=loc_any,
+        frame=f"anchors:{b[0]},{b[1]},{b[2]}",
     )
     return res, info
+
+
+def _filter_anchors(dataset: MeshDataset, anchors, mode: str) -> tuple[int, int, int]:
+    """The frame the filter runs in (`PGPParams.frame`: "auto" or "proxy")."""
+    from jaxcal.mesh import identify
+
+    if mode == "proxy":
+        best = identify.choose_frame(dataset.range)
+        return anchors if best is None else best[0]
+    return identify.filter_frame(dataset.range, anchors)
+
+
+def _to_config_frame(final, cov, track, anchors):
+    """(final, cov, track) of a proxy-frame run moved into the frame of `anchors` (2-D): each epoch of
+    the track through that epoch's estimates of a0, a1, a2, the final position and covariance through
+    the final ones (`frame.frame_covariance`, first order)."""
+    from jaxcal.mesh.frame import frame_covariance, to_frame_track
+
+    a0, a1, a2 = anchors
+    track = to_frame_track(track, a0, a1, a2)
+    out = to_frame_track(final[None], a0, a1, a2)[0]
+    if np.isfinite(out).all(axis=1).any():
+        c = np.where(np.isfinite(cov), cov, 0.0)
+        cov = np.where(np.isfinite(out).all(axis=1)[:, None, None], frame_covariance(final, c, a0, a1, a2),
+                       np.nan)
+    else:
+        cov = np.full_like(cov, np.nan)
+    return out, cov, track
 
 
 def _software() -> str:
@@ -1172,7 +1228,10 @@ def _software() -> str:
 def calibrate(
     dataset: MeshDataset, params=None, config: str | None = None, progress=None
 ) -> Result:
-    """`--method pgp`: the grid-based Bayesian filter with hypothesis likelihoods (eq. 3-14).
+    """`--method pgp`: the grid-based Bayesian filter with hypothesis likelihoods (eq. 3-14); nodes the
+    ranges cannot fix in the frame (`identify.py`) are NaN rows, named in one warning line.
 
     `progress`: optional callback called with the epochs done since its last call."""
-    return run_pgp(dataset, params, config, mode="pgp", progress=progress)[0]
+    from jaxcal.mesh.identify import mask_result
+
+    return mask_result(run_pgp(dataset, params, config, mode="pgp", progress=progress)[0], dataset.range)
