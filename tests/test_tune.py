@@ -64,12 +64,13 @@ def test_soft_cut_reduces_to_hard_rule():
     assert np.isfinite(np.asarray(lw_warm)).all()
 
 
-@pytest.mark.parametrize("kind, model", [("truth", "gaussian"), ("evidence", "gaussian"),
-                                         ("evidence", "mixture")])
-def test_gradient_matches_finite_differences(kind, model):
-    ds = make_mesh()
+@pytest.mark.parametrize("kind, model, n", [("truth", "gaussian", 5), ("nlpl", "gaussian", 5),
+                                            ("nlpl", "mixture", 5), ("evidence", "gaussian", 7)])
+def test_gradient_matches_finite_differences(kind, model, n):
+    ds = make_mesh(n=n)
     p = PGPParams(**SMALL, range_model=model)
     prob, _ = T.make_problem(ds, p, None, kind, tau_temp=0.1, est_temp=5.0)
+    assert prob.kind == kind  # 7 nodes: pairs to hold out
     mix = {"nlos_weight": 0.3, "nlos_mean_m": 1.2} if model == "mixture" else {}
     theta = T.theta_of(0.8, 0.7, 0.6, jnp.float64, **mix)
     assert theta.shape == (len(T.tuned_names(model)),)
@@ -109,6 +110,7 @@ def test_tune_lowers_objective_and_hard_rule_is_reported():
         assert {k: got[k] for k in want} == want
     # 5 nodes: one pair among the non-anchors, too few to hold out: the guard compares the NLPL
     assert np.isnan(res.hard_before["heldout_m"]) and res.hard_key == "nlpl"
+    assert res.settings["objective_used"] == "nlpl"
     assert res.accepted == (res.hard_after["nlpl"] < res.hard_before["nlpl"])
     assert res.params == (res.tuned if res.accepted else res.start)
 

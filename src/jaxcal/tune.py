@@ -8,12 +8,20 @@ hard rule is the limit `tau_temp -> 0`). The parameters are optimised unconstrai
 `theta = (log sigma_r, log sigma_v, logit tau)`, and with `range_model="mixture"` also
 `(logit nlos_weight, log nlos_mean_m)` of the NLOS-aware range kernel (`grid.range_kernel_log`).
 
-Objectives (both per tuning window, the first `epochs` epochs of the dataset):
+Objectives (over the tuning data, by default the whole dataset):
 
 - `truth`: RMSE [m] of the final positions (a0 excluded) against the ground truth in the
   configuration frame, each position the tempered eq. (13) estimate of `soft_estimates` (a grid
   posterior collapses into one cell, where eq. 13 itself is piecewise constant: zero gradient).
-- `evidence`: negative log predictive likelihood of the measured ranges, in nats per range factor.
+- `evidence` (the default; no ground truth): cross-validation over pairs. The pairs between
+  non-anchor nodes are dealt into two folds (`tune_eval.pair_folds`); per fold the filter runs
+  without that fold's ranges, and the loss is the mean over the fold's pairs of
+  `sqrt(r^2 + 0.05^2)`, `r = median_k z_ij - |x_i - x_j|` (the pair's median range against the
+  distance of the final tempered estimates, as in `truth`); the folds' losses are averaged [m].
+  A node placed wrongly mispredicts the ranges it was not fitted to. The hard counterpart that the
+  guard compares is `tune_eval.heldout_range_error`. Datasets with fewer than 5 nodes have no pair
+  to hold out: `evidence` then falls back to `nlpl` (and says so in `TuneResult.settings`).
+- `nlpl`: negative log predictive likelihood of the measured ranges, in nats per range factor.
   Per epoch and node, before the update, the log normaliser of eq. (12), `log sum_g pbar(g) L(g)`
   (`FilterOut.log_evidence`), with each eq. (11) factor read as a density of the range z on [0, L]:
   `f(z | g) = ((1 - p_out) sum_l w_l exp(-(|g - g_l| - z)^2 / 2 sigma_r^2) + p_out) / Z`,
@@ -22,18 +30,22 @@ Objectives (both per tuning window, the first `epochs` epochs of the dataset):
   exactly the one this density model implies; with `p_out = 0` it is the Gaussian of eq. (11). The
   mixture kernel is scaled to the same integral `sigma_r sqrt(2 pi)`, so Z holds for it too. No
   ground truth is needed. (Nodes update independently given the others' hypotheses, so the sum over
-  nodes is a pseudo-likelihood; every pair's range enters once per end.)
+  nodes is a pseudo-likelihood; every pair's range enters once per end.) It ranks parameters
+  unlike accuracy (it prefers a wide sigma_r that explains the NLOS excess; docs/benchmarks/
+  tuning.md), hence not the default.
 
-Memory: reverse mode through `lax.scan` keeps the carry of every epoch, `(epochs, nodes, cells)`
-log posteriors (12 nodes x 63^2 cells x 200 epochs x 8 B = 76 MB for torgau at 1 m cells), and with
-`FilterConfig.remat` each epoch's intermediates are recomputed in the backward pass, not stored
-(without it the eq. (11) intermediates take gigabytes). Defaults: 1.0 m cells, 200 epochs, float64.
+Memory: the scan runs in checkpointed segments (`mesh.segmented`): reverse mode keeps ~2 sqrt(K)
+`(nodes, cells)` carries instead of K, every epoch recomputed in the backward pass. float64.
+
+Guard (`tune`): the start and the tuned values are run as `calibrate` runs them (hard cut, its
+cell size and likelihood path, the whole dataset); the tuned values are kept only if better.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from collections.abc import Callable
 
 import equinox as eqx
@@ -76,7 +88,8 @@ __all__ = [
     "tune",
 ]
 
-OBJECTIVES = ("truth", "evidence")
+OBJECTIVES = ("evidence", "truth", "nlpl")
+HELDOUT_EPS_M = 0.05  # smooths |r| at 0 (gradient) in the evidence loss
 TUNED = ("sigma_r", "sigma_v", "tau")
 # tuned as well when range_model="mixture" (theta entries 3 and 4)
 TUNED_MIXTURE = ("nlos_weight", "nlos_mean_m")
@@ -100,6 +113,8 @@ class Problem(eqx.Module):
     span_m: float = eqx.field(static=True)
     kind: str = eqx.field(static=True)
     segment: int = eqx.field(static=True, default=0)  # epochs per checkpointed segment (0: sqrt)
+    folds: Array | None = None  # (F, N, N) bool held-out pairs (evidence)
+    targets: Float[Array, "nodes nodes"] | None = None  # median range per pair [m] (evidence)
 
 
 def make_problem(
@@ -137,6 +152,16 @@ def make_problem(
         raise JaxcalError(
             f"{dataset.name}: objective 'truth' needs ground truth (use --objective evidence)"
         )
+    folds = targets = None
+    if kind == "evidence":
+        fl = tune_eval.pair_folds(dataset.n_nodes)
+        if not fl:
+            kind = "nlpl"  # fewer than 5 nodes: no pair to hold out
+        else:
+            folds = jnp.asarray(np.stack(fl))
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # pairs never measured: NaN
+                targets = jnp.asarray(np.nanmedian(np.asarray(inp.z, np.float64), axis=0), ftype)
     prob = Problem(
         cfg,
         prm,
@@ -147,6 +172,8 @@ def make_problem(
         grid_span_m(cfg),
         kind,
         int(segment or 0),
+        folds,
+        targets,
     )
     return prob, order
 
@@ -194,18 +221,42 @@ def values_of(theta) -> dict[str, float]:
 
 
 def objective(theta: Float[Array, " p"], prob: Problem) -> Float[Array, ""]:
-    """Objective at theta (`theta_of`): RMSE [m] or NLPL [nats]."""
+    """Objective at theta (`theta_of`): held-out range loss [m], RMSE [m] or NLPL [nats]."""
     prm = _with_theta(prob.prm, theta)
+    if prob.kind == "evidence":
+        return _heldout_loss(prm, prob)
     st, out = filter_segmented(prob.cfg, prm, prob.inp, prob.logpost0, prob.segment or None)
     if prob.kind == "truth":
-        radius = jnp.maximum(prm.r_est, 1.5 * prob.cfg.grid.cell_m)
-        est = soft_estimates(
-            st.logpost, prob.cfg.grid.cells(st.logpost.dtype), radius, prob.est_temp
-        )
-        loc = jnp.isfinite(out.estimate[-1]).all(-1)
-        est = jnp.where(loc[:, None], est, jnp.nan)
-        return final_rmse(est[None], prob.truth)
+        return final_rmse(_final_estimates(st, out, prm, prob)[None], prob.truth)
     return neg_log_predictive(out, prm.sigma_r, prm.p_out, prob.span_m)
+
+
+def _final_estimates(st, out, prm, prob: Problem):
+    """Tempered eq. (13) final positions (N, 2); NaN for nodes not localised."""
+    radius = jnp.maximum(prm.r_est, 1.5 * prob.cfg.grid.cell_m)
+    est = soft_estimates(st.logpost, prob.cfg.grid.cells(st.logpost.dtype), radius, prob.est_temp)
+    loc = jnp.isfinite(out.estimate[-1]).all(-1)
+    return jnp.where(loc[:, None], est, jnp.nan)
+
+
+def _heldout_loss(prm: pgp.FilterParams, prob: Problem) -> Float[Array, ""]:
+    """The evidence objective (module docstring): per fold, run without its pairs, predict them."""
+
+    def fold(m):
+        inp = dataclasses.replace(prob.inp, z=jnp.where(m[None], jnp.nan, prob.inp.z))
+        st, out = filter_segmented(prob.cfg, prm, inp, prob.logpost0, prob.segment or None)
+        est = _final_estimates(st, out, prm, prob)
+        ok = jnp.triu(m, 1) & jnp.isfinite(prob.targets) & jnp.isfinite(est).all(-1)[:, None]
+        ok = ok & jnp.isfinite(est).all(-1)[None, :]
+        e = jnp.where(jnp.isfinite(est), est, 0.0)
+        d = G.safe_norm(e[:, None, :] - e[None, :, :])
+        r = jnp.where(ok, jnp.where(ok, prob.targets, 0.0) - d, 0.0)
+        loss = jnp.where(ok, jnp.sqrt(r * r + HELDOUT_EPS_M**2), 0.0)
+        return jnp.sum(loss), jnp.sum(ok)
+
+    total, count = jax.lax.map(fold, prob.folds)
+    n = jnp.sum(count)
+    return jnp.where(n > 0, jnp.sum(total) / jnp.maximum(n, 1), jnp.nan)
 
 
 def soft_estimates(
@@ -310,7 +361,9 @@ def hard_key(objective_name: str, hard_before: dict) -> str:
     when no pair can be held out (fewer than 5 nodes)."""
     if objective_name == "truth":
         return "rmse_m"
-    return "heldout_m" if math.isfinite(hard_before.get("heldout_m", math.nan)) else "nlpl"
+    if objective_name == "evidence" and math.isfinite(hard_before.get("heldout_m", math.nan)):
+        return "heldout_m"
+    return "nlpl"
 
 
 def check(dataset: MeshDataset, params, config: str | None, objective_name: str) -> dict:
@@ -428,6 +481,7 @@ def tune(
             "check_cell_m": params.cell_m,
             "check_epochs": dataset.n_epochs,
             "likelihood": params.likelihood,
+            "objective_used": prob.kind,
             "n_cells_side": prob.cfg.grid.n_side,
             "segment": prob.segment or segment_length(ds.n_epochs),
             "tau_temp": tau_temp,

@@ -11,9 +11,10 @@ def add_arguments(p) -> None:
     p.add_argument(
         "--objective",
         default="evidence",
-        choices=["evidence", "truth"],
-        help="evidence (default): negative log predictive likelihood of the ranges (no truth "
-        "needed); truth: RMSE against the ground truth",
+        choices=["evidence", "truth", "nlpl"],
+        help="evidence (default, no truth needed): predict the ranges of pairs held out from the "
+        "filter (cross-validation over pairs); truth: RMSE against the ground truth; nlpl: the "
+        "filter's own predictive likelihood of the ranges (ranks parameters poorly)",
     )
     p.add_argument(
         "-o",
