@@ -450,13 +450,15 @@ def tune(
 
         theta, steps, ok, message = _bfgs(theta0, prob, rtol, atol, max_steps, step_cb)
         after = float(_value(theta, prob))
+        if not math.isfinite(after) or after > before:  # the optimiser's end is never worse
+            theta, after = theta0, before
     t1 = time.perf_counter()
     start, tuned = values_of(theta0), values_of(theta)
     hard_before = check(dataset, params, config, objective_name)
     hard_after = (
-        check(dataset, with_overrides(params, tuned), config, objective_name)
-        if math.isfinite(after)
-        else {k: math.nan for k in hard_before}
+        dict(hard_before)  # the optimiser did not move: nothing to check
+        if tuned == start
+        else check(dataset, with_overrides(params, tuned), config, objective_name)
     )
     key = hard_key(objective_name, hard_before)
     accepted = math.isfinite(hard_after[key]) and (
