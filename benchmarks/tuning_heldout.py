@@ -61,6 +61,8 @@ def main() -> None:
     ap.add_argument("--objective", default="evidence")
     ap.add_argument("--families", default=",".join(FAMILIES))
     ap.add_argument("--no-real", action="store_true")
+    ap.add_argument("--tests", type=int, default=2, help="test seeds per family (at most 2)")
+    ap.add_argument("--real-first", action="store_true", help="the dwm1001 rows before the families")
     a = ap.parse_args()
     rows = []
 
@@ -69,23 +71,9 @@ def main() -> None:
         rows.append(row)
         print(json.dumps(row), flush=True)
 
-    for fam in a.families.split(","):
-        name, config, fixed, over, train, tests = FAMILIES[fam]
-        t = time.perf_counter()
-        res = tune(sim(name, train, over, a.epochs), fixed, config, objective_name=a.objective,
-                   epochs=a.tune_epochs, cell_m=a.tune_cell, max_steps=a.max_steps)
-        emit({"family": fam, "role": "train", "seed": train, "accepted": res.accepted,
-              "start": res.start, "tuned": res.tuned, "hard_before": res.hard_before,
-              "hard_after": res.hard_after, "steps": res.steps, "message": res.message,
-              "seconds": round(time.perf_counter() - t, 1)})
-        for s in tests:
-            ds = sim(name, s, over, a.epochs)
-            d = hard_metrics(ds, fixed, config)
-            u = d if not res.accepted else hard_metrics(ds, {**fixed, **res.params}, config)
-            emit({"family": fam, "role": "test", "seed": s, "accepted": res.accepted,
-                  "rmse_default_m": d["rmse_m"], "rmse_tuned_m": u["rmse_m"],
-                  "nlpl_default": d["nlpl"], "nlpl_tuned": u["nlpl"]})
-    if not a.no_real and DWM.is_dir():
+    def real():
+        if a.no_real or not DWM.is_dir():
+            return
         from jaxcal.io.importers import import_recording
 
         for folder, cfg in REAL:
@@ -96,8 +84,33 @@ def main() -> None:
                   "accepted": res.accepted, "start": res.start, "tuned": res.tuned,
                   "rmse_default_m": res.hard_before["rmse_m"],
                   "rmse_tuned_m": (res.hard_after if res.accepted else res.hard_before)["rmse_m"],
-                  "nlpl_default": res.hard_before["nlpl"], "nlpl_tuned": res.hard_after["nlpl"],
+                  "heldout_default_m": res.hard_before.get("heldout_m"),
+                  "heldout_tuned_m": res.hard_after.get("heldout_m"),
                   "steps": res.steps, "seconds": round(time.perf_counter() - t, 1)})
+
+    if a.real_first:
+        real()
+    for fam in [f for f in a.families.split(",") if f]:
+        name, config, fixed, over, train, tests = FAMILIES[fam]
+        tests = tests[: a.tests]
+        t = time.perf_counter()
+        res = tune(sim(name, train, over, a.epochs), fixed, config, objective_name=a.objective,
+                   epochs=a.tune_epochs, cell_m=a.tune_cell, max_steps=a.max_steps)
+        emit({"family": fam, "role": "train", "seed": train, "accepted": res.accepted,
+              "start": res.start, "tuned": res.tuned, "hard_before": res.hard_before,
+              "hard_after": res.hard_after, "steps": res.steps, "message": res.message,
+              "rmse_default_m": res.hard_before["rmse_m"],
+              "rmse_tuned_m": (res.hard_after if res.accepted else res.hard_before)["rmse_m"],
+              "seconds": round(time.perf_counter() - t, 1)})
+        for s in tests:
+            ds = sim(name, s, over, a.epochs)
+            d = hard_metrics(ds, fixed, config)
+            u = d if not res.accepted else hard_metrics(ds, {**fixed, **res.params}, config)
+            emit({"family": fam, "role": "test", "seed": s, "accepted": res.accepted,
+                  "rmse_default_m": d["rmse_m"], "rmse_tuned_m": u["rmse_m"],
+                  "nlpl_default": d["nlpl"], "nlpl_tuned": u["nlpl"]})
+    if not a.real_first:
+        real()
     ev = [r for r in rows if "rmse_default_m" in r]
     print(f"\n<!-- {platform.node()} {os.cpu_count()} cpus, args {vars(a)} -->")
     print("| family | role | seed | tuned values kept | RMSE defaults [m] | RMSE after tune [m] "
