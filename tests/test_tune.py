@@ -143,8 +143,11 @@ def test_guard_keeps_the_start_when_calibrate_does_worse(monkeypatch):
         return theta0.at[0].set(np.log(40.0)), 1, True, "converged"
 
     monkeypatch.setattr(T, "_bfgs", bad_fit)
+    # and a surrogate that calls it better (the failure of issue 17: a short, coarse window liked
+    # values that made calibrate's run worse)
+    monkeypatch.setattr(T, "_value", lambda theta, prob: jnp.where(theta[0] > 2.0, 0.5, 1.0))
     res = T.tune(ds, SMALL, None, objective_name="truth", tau_temp=0.1)
-    assert res.tuned["sigma_r"] == pytest.approx(40.0)
+    assert res.tuned["sigma_r"] == pytest.approx(40.0) and res.after < res.before
     assert res.hard_after["rmse_m"] > res.hard_before["rmse_m"]
     assert not res.accepted and res.params == res.start
     assert res.params["sigma_r"] == pytest.approx(SMALL["sigma_r"])
@@ -258,3 +261,17 @@ def test_cli_tune_then_calibrate(tmp_path):
     assert_one_line_error(
         run_cli("tune", g, "--objective", "truth", "-o", tmp_path / "x.json"), "ground truth"
     )
+
+
+def test_hard_metrics_are_calibrates_run():
+    """The guard's figures are `calibrate` + `evaluate` on the same data and parameters."""
+    from jaxcal.metrics import evaluate_mesh
+    from jaxcal.sim.mesh import simulate
+
+    ds = T.window(simulate("small", 4), 15)
+    p = {"cell_m": 1.0, "sigma_r": 0.4}
+    got = E.hard_metrics(ds, p, "conf1")
+    res, _ = pgp.run_pgp(ds, p, "conf1")
+    ev = evaluate_mesh(res, ds)
+    np.testing.assert_allclose(got["rmse_m"], ev["rmse_m"], rtol=1e-6)
+    np.testing.assert_allclose(got["final_rmse_m"], ev["final_rmse_m"], rtol=1e-6)
