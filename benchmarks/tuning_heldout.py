@@ -62,7 +62,8 @@ def main() -> None:
     ap.add_argument("--families", default=",".join(FAMILIES))
     ap.add_argument("--no-real", action="store_true")
     ap.add_argument("--tests", type=int, default=2, help="test seeds per family (at most 2)")
-    ap.add_argument("--real-first", action="store_true", help="the dwm1001 rows before the families")
+    ap.add_argument("--real-first", action="store_true",
+                    help="the dwm1001 rows before the families")
     a = ap.parse_args()
     rows = []
 
@@ -77,7 +78,8 @@ def main() -> None:
         from jaxcal.io.importers import import_recording
 
         for folder, cfg in REAL:
-            ds = import_recording("dwm1001-autocal", DWM / folder, DWM / "nodes_cfg" / f"{cfg}.yaml")
+            yaml_path = DWM / "nodes_cfg" / f"{cfg}.yaml"
+            ds = import_recording("dwm1001-autocal", DWM / folder, yaml_path)
             t = time.perf_counter()
             res = tune(ds, {}, "conf1", objective_name="evidence", max_steps=a.max_steps)
             emit({"family": f"dwm1001/{cfg}", "role": "self", "seed": -1,

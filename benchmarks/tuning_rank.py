@@ -72,7 +72,8 @@ def main() -> None:
         for k in ("nlpl", "heldout_m"):
             v = np.array([x[k] for x in rows])
             ok = np.isfinite(v) & np.isfinite(r)
-            out[f"spearman_{k}"] = float(spearmanr(v[ok], r[ok]).statistic) if ok.sum() > 2 else None
+            rho = spearmanr(v[ok], r[ok]).statistic if ok.sum() > 2 else None
+            out[f"spearman_{k}"] = None if rho is None else float(rho)
             best = int(np.nanargmin(np.where(ok, v, np.inf)))
             out[f"rmse_at_best_{k}"] = float(r[best])
         out["rmse_best"] = float(np.nanmin(r))

@@ -131,7 +131,7 @@ def make_problem(
 
     Args:
         dataset: the (windowed) mesh dataset. params: filter parameters (the start point).
-        config: frame configuration name. kind: "truth" or "evidence".
+        config: frame configuration name. kind: "evidence", "truth" or "nlpl".
         tau_temp: temperature of the soft cut (mass units; 0 gives the hard rule, not differentiable
             in tau). remat: checkpoint every epoch (memory ~ epochs x carry).
         est_temp: temperature of the `truth` objective's estimate (`soft_estimates`, nats).
@@ -322,7 +322,8 @@ class TuneResult:
             nlos_mean_m [m] with the mixture range model): the tuned ones when `accepted`, else the
             start.
         start: the start values; tuned: what the optimiser ended at (same keys).
-        objective: "truth" or "evidence".
+        objective: "evidence", "truth" or "nlpl" (as asked; `settings["objective_used"]` says
+            when evidence fell back to nlpl).
         before, after: the gradient objective (soft cut, on the tuning data) at start and end.
         hard_before, hard_after: `check` of the start and of the tuned values: the filter exactly
             as `calibrate` runs it (hard cut, its cell size and likelihood path, the whole dataset)
@@ -392,7 +393,7 @@ def tune(
     on_step: Callable[[int, float], None] | None = None,
 ) -> TuneResult:
     """Fit sigma_r, sigma_v and tau (and with `range_model="mixture"` nlos_weight and
-    nlos_mean_m) of the PGP filter by BFGS, then keep them only if `calibrate` does better with them.
+    nlos_mean_m) of the PGP filter by BFGS; keep them only if `calibrate` does better with them.
 
     Gradient phase: BFGS on the objective with the soft cut of tau, over the first `epochs` epochs
     (None: all) on a grid of `cell_m` cells (None: `params.cell_m`, calibrate's), the filter's
