@@ -167,11 +167,11 @@ def test_segmented_scan_equals_one_scan(likelihood):
     np.testing.assert_allclose(np.asarray(st1.logpost), np.asarray(st2.logpost), atol=1e-12)
     assert segment_length(2000) == 45 and segment_length(1) == 1
 
-    prob, _ = T.make_problem(ds, p, None, "evidence", tau_temp=0.1)
-    seg3 = T.Problem(*[getattr(prob, f) for f in ("cfg", "prm", "inp", "logpost0", "truth",
-                                                   "est_temp", "span_m", "kind")], segment=3)
-    one = T.Problem(*[getattr(prob, f) for f in ("cfg", "prm", "inp", "logpost0", "truth",
-                                                  "est_temp", "span_m", "kind")], segment=7)
+    import dataclasses
+
+    prob, _ = T.make_problem(ds, p, None, "nlpl", tau_temp=0.1)
+    seg3 = dataclasses.replace(prob, segment=3)
+    one = dataclasses.replace(prob, segment=7)
     theta = T.theta_of(0.8, 0.7, 0.6, jnp.float64)
     g3 = jax.grad(T.objective)(theta, seg3)
     g1 = jax.grad(T.objective)(theta, one)
