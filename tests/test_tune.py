@@ -1,4 +1,5 @@
-"""Tuning: soft tau cut -> hard rule, gradients against finite differences, BFGS improves, CLI."""
+"""Tuning: soft tau cut -> hard rule, segmented scan = one scan, gradients against finite
+differences, BFGS improves, the guard keeps the start when calibrate does not do better, CLI."""
 
 from __future__ import annotations
 
@@ -14,7 +15,10 @@ from jaxcal import tune as T
 from jaxcal.data import MeshDataset
 from jaxcal.io import hdf5
 from jaxcal.mesh import grid as G
+from jaxcal import tune_eval as E
+from jaxcal.mesh import pgp
 from jaxcal.mesh.pgp import PGPParams
+from jaxcal.mesh.segmented import filter_segmented, segment_length
 
 
 def make_mesh(n=5, k=5, noise=0.15, seed=0, span=5.0, truth=True) -> MeshDataset:
@@ -60,12 +64,13 @@ def test_soft_cut_reduces_to_hard_rule():
     assert np.isfinite(np.asarray(lw_warm)).all()
 
 
-@pytest.mark.parametrize("kind, model", [("truth", "gaussian"), ("evidence", "gaussian"),
-                                         ("evidence", "mixture")])
-def test_gradient_matches_finite_differences(kind, model):
-    ds = make_mesh()
+@pytest.mark.parametrize("kind, model, n", [("truth", "gaussian", 5), ("nlpl", "gaussian", 5),
+                                            ("nlpl", "mixture", 5), ("evidence", "gaussian", 7)])
+def test_gradient_matches_finite_differences(kind, model, n):
+    ds = make_mesh(n=n)
     p = PGPParams(**SMALL, range_model=model)
     prob, _ = T.make_problem(ds, p, None, kind, tau_temp=0.1, est_temp=5.0)
+    assert prob.kind == kind  # 7 nodes: pairs to hold out
     mix = {"nlos_weight": 0.3, "nlos_mean_m": 1.2} if model == "mixture" else {}
     theta = T.theta_of(0.8, 0.7, 0.6, jnp.float64, **mix)
     assert theta.shape == (len(T.tuned_names(model)),)
@@ -85,21 +90,93 @@ def test_gradient_matches_finite_differences(kind, model):
 
 def test_tune_lowers_objective_and_hard_rule_is_reported():
     ds = make_mesh(k=6, seed=2)
+    start = {**SMALL, "sigma_r": 2.0}
+    steps = []
     res = T.tune(
         ds,
-        {**SMALL, "sigma_r": 2.0},
+        start,
         None,
         objective_name="evidence",
-        epochs=None,
         tau_temp=0.1,
         max_steps=8,
+        progress=lambda n: steps.append(n),
     )
-    assert res.after <= res.before
     assert res.after < res.before - 1e-3  # sigma_r = 2 m is far too wide for 0.15 m noise
-    assert res.params["sigma_r"] < 2.0
+    assert res.tuned["sigma_r"] < 2.0 and len(steps) == res.steps >= 1
     assert set(res.params) == {"sigma_r", "sigma_v", "tau"} and 0 < res.params["tau"] < 1
-    for d in (res.hard_before, res.hard_after):
-        assert set(d) == {"rmse_m", "final_rmse_m", "nlpl"} and np.isfinite(d["nlpl"])
+    # the guard's figures are calibrate's run (hard cut, whole dataset) of start and tuned values
+    for got, p in ((res.hard_before, start), (res.hard_after, {**start, **res.tuned})):
+        want = E.hard_metrics(ds, p, None)
+        assert {k: got[k] for k in want} == want
+    # 5 nodes: one pair among the non-anchors, too few to hold out: the guard compares the NLPL
+    assert np.isnan(res.hard_before["heldout_m"]) and res.hard_key == "nlpl"
+    assert res.settings["objective_used"] == "nlpl"
+    assert res.accepted == (res.hard_after["nlpl"] < res.hard_before["nlpl"])
+    assert res.params == (res.tuned if res.accepted else res.start)
+
+
+def test_pair_folds_partition_and_heldout_error():
+    folds = E.pair_folds(9, 3, seed=1)
+    total = sum(f.astype(int) for f in folds)
+    want = np.zeros((9, 9), int)
+    want[3:, 3:] = 1
+    np.fill_diagonal(want, 0)
+    np.testing.assert_array_equal(total, want)  # every pair among nodes >= 3 in exactly one fold
+    assert all((f == f.T).all() for f in folds) and E.pair_folds(4, 2) == []
+    # noise-free ranges: the held-out pairs are predicted to within the grid's quantisation
+    ds = make_mesh(n=7, k=6, noise=0.0, seed=6)
+    err = E.heldout_range_error(ds, SMALL, None, n_folds=2)
+    assert 0 <= err < SMALL["cell_m"]
+    # wrong ranges on the held-out pairs raise it by about their offset
+    r = ds.range.copy()
+    r[:, 3:, 3:] += 2.0
+    import dataclasses
+
+    bad = dataclasses.replace(ds, range=r)
+    assert E.heldout_range_error(bad, SMALL, None, n_folds=2) > err + 1.0
+
+
+def test_guard_keeps_the_start_when_calibrate_does_worse(monkeypatch):
+    ds = make_mesh(k=6, seed=3)
+
+    def bad_fit(theta0, prob, *a, **k):  # an optimiser that ends far off: sigma_r = 40 m
+        return theta0.at[0].set(np.log(40.0)), 1, True, "converged"
+
+    monkeypatch.setattr(T, "_bfgs", bad_fit)
+    # and a surrogate that calls it better (the failure of issue 17: a short, coarse window liked
+    # values that made calibrate's run worse)
+    monkeypatch.setattr(T, "_value", lambda theta, prob: jnp.where(theta[0] > 2.0, 0.5, 1.0))
+    res = T.tune(ds, SMALL, None, objective_name="truth", tau_temp=0.1)
+    assert res.tuned["sigma_r"] == pytest.approx(40.0) and res.after < res.before
+    assert res.hard_after["rmse_m"] > res.hard_before["rmse_m"]
+    assert not res.accepted and res.params == res.start
+    assert res.params["sigma_r"] == pytest.approx(SMALL["sigma_r"])
+
+
+@pytest.mark.parametrize("likelihood", ["dense", "window"])
+def test_segmented_scan_equals_one_scan(likelihood):
+    """Checkpointed segments (7 epochs as 3 + 3 + a tail of 1) = the one-scan filter: values (also
+    on the window fast path, whose windowed epochs run inside the segments) and gradients."""
+    ds = make_mesh(n=6, k=7, seed=5)
+    p = PGPParams(**{**SMALL, "likelihood": likelihood, "window_m": 5.0, "window_small_m": 0.0})
+    cfg, prm, inp, lp0, _ = pgp.prepare(ds, p, None, "pgp")
+    st1, out1 = pgp.run_filter(cfg, prm, inp, lp0)
+    st2, out2 = filter_segmented(cfg, prm, inp, lp0, segment=3)
+    for a, b in zip(jax.tree.leaves(out1), jax.tree.leaves(out2), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(st1.logpost), np.asarray(st2.logpost), atol=1e-12)
+    assert segment_length(2000) == 45 and segment_length(1) == 1
+    if likelihood == "window":  # its gradient compiles for minutes; the values are the same code
+        return
+    import dataclasses
+
+    prob, _ = T.make_problem(ds, p, None, "nlpl", tau_temp=0.1)
+    seg3 = dataclasses.replace(prob, segment=3)
+    one = dataclasses.replace(prob, segment=7)
+    theta = T.theta_of(0.8, 0.7, 0.6, jnp.float64)
+    g3 = jax.grad(T.objective)(theta, seg3)
+    g1 = jax.grad(T.objective)(theta, one)
+    np.testing.assert_allclose(np.asarray(g3), np.asarray(g1), rtol=1e-10)
 
 
 def test_theta_round_trip_with_the_mixture_parameters():
@@ -149,10 +226,19 @@ def test_cli_tune_then_calibrate(tmp_path):
     assert proc.returncode == 0, proc.stderr
     doc = json.loads(out.read_text())
     assert set(doc["params"]) >= {"sigma_r", "sigma_v", "tau", "top_k"}
-    assert (
-        doc["tuning"]["objective"] == "evidence"
-        and doc["tuning"]["after"] <= doc["tuning"]["before"]
-    )
+    t = doc["tuning"]
+    assert t["objective"] == "evidence" and t["settings"]["check_epochs"] == 6
+    # what was written is what the guard chose
+    chosen = t["tuned"] if t["accepted"] else t["start"]
+    assert {k: doc["params"][k] for k in chosen} == chosen
+    assert t["accepted"] == (t["hard_after"]["nlpl"] < t["hard_before"]["nlpl"])  # 5 nodes
+    # without --json: a progress bar (forced on) and one summary line with both hard figures
+    proc = run_cli("tune", f, "--objective", "evidence", "--max-steps", "2", "-o",
+                   tmp_path / "q.json", *sets, env={"JAXCAL_PROGRESS": "1"})
+    assert proc.returncode == 0, proc.stderr
+    line = proc.stdout.strip()
+    assert "\n" not in line and "calibrate's nlpl" in line and "start sigma_r=" in line
+    assert "tune:" in proc.stderr and "step" in proc.stderr
     res = tmp_path / "r.h5"
     proc = run_cli(
         "calibrate",
@@ -176,3 +262,17 @@ def test_cli_tune_then_calibrate(tmp_path):
     assert_one_line_error(
         run_cli("tune", g, "--objective", "truth", "-o", tmp_path / "x.json"), "ground truth"
     )
+
+
+def test_hard_metrics_are_calibrates_run():
+    """The guard's figures are `calibrate` + `evaluate` on the same data and parameters."""
+    from jaxcal.metrics import evaluate_mesh
+    from jaxcal.sim.mesh import simulate
+
+    ds = T.window(simulate("small", 4), 15)
+    p = {"cell_m": 1.0, "sigma_r": 0.4}
+    got = E.hard_metrics(ds, p, "conf1")
+    res, _ = pgp.run_pgp(ds, p, "conf1")
+    ev = evaluate_mesh(res, ds)
+    np.testing.assert_allclose(got["rmse_m"], ev["rmse_m"], rtol=1e-6)
+    np.testing.assert_allclose(got["final_rmse_m"], ev["final_rmse_m"], rtol=1e-6)

@@ -8,12 +8,20 @@ hard rule is the limit `tau_temp -> 0`). The parameters are optimised unconstrai
 `theta = (log sigma_r, log sigma_v, logit tau)`, and with `range_model="mixture"` also
 `(logit nlos_weight, log nlos_mean_m)` of the NLOS-aware range kernel (`grid.range_kernel_log`).
 
-Objectives (both per tuning window, the first `epochs` epochs of the dataset):
+Objectives (over the tuning data, by default the whole dataset):
 
 - `truth`: RMSE [m] of the final positions (a0 excluded) against the ground truth in the
   configuration frame, each position the tempered eq. (13) estimate of `soft_estimates` (a grid
   posterior collapses into one cell, where eq. 13 itself is piecewise constant: zero gradient).
-- `evidence`: negative log predictive likelihood of the measured ranges, in nats per range factor.
+- `evidence` (the default; no ground truth): cross-validation over pairs. The pairs between
+  non-anchor nodes are dealt into two folds (`tune_eval.pair_folds`); per fold the filter runs
+  without that fold's ranges, and the loss is the mean over the fold's pairs of
+  `sqrt(r^2 + 0.05^2)`, `r = median_k z_ij - |x_i - x_j|` (the pair's median range against the
+  distance of the final tempered estimates, as in `truth`); the folds' losses are averaged [m].
+  A node placed wrongly mispredicts the ranges it was not fitted to. The hard counterpart that the
+  guard compares is `tune_eval.heldout_range_error`. Datasets with fewer than 5 nodes have no pair
+  to hold out: `evidence` then falls back to `nlpl` (and says so in `TuneResult.settings`).
+- `nlpl`: negative log predictive likelihood of the measured ranges, in nats per range factor.
   Per epoch and node, before the update, the log normaliser of eq. (12), `log sum_g pbar(g) L(g)`
   (`FilterOut.log_evidence`), with each eq. (11) factor read as a density of the range z on [0, L]:
   `f(z | g) = ((1 - p_out) sum_l w_l exp(-(|g - g_l| - z)^2 / 2 sigma_r^2) + p_out) / Z`,
@@ -22,18 +30,23 @@ Objectives (both per tuning window, the first `epochs` epochs of the dataset):
   exactly the one this density model implies; with `p_out = 0` it is the Gaussian of eq. (11). The
   mixture kernel is scaled to the same integral `sigma_r sqrt(2 pi)`, so Z holds for it too. No
   ground truth is needed. (Nodes update independently given the others' hypotheses, so the sum over
-  nodes is a pseudo-likelihood; every pair's range enters once per end.)
+  nodes is a pseudo-likelihood; every pair's range enters once per end.) It ranks parameters
+  unlike accuracy (it prefers a wide sigma_r that explains the NLOS excess; docs/benchmarks/
+  tuning.md), hence not the default.
 
-Memory: reverse mode through `lax.scan` keeps the carry of every epoch, `(epochs, nodes, cells)`
-log posteriors (12 nodes x 63^2 cells x 200 epochs x 8 B = 76 MB for torgau at 1 m cells), and with
-`FilterConfig.remat` each epoch's intermediates are recomputed in the backward pass, not stored
-(without it the eq. (11) intermediates take gigabytes). Defaults: 1.0 m cells, 200 epochs, float64.
+Memory: the scan runs in checkpointed segments (`mesh.segmented`): reverse mode keeps ~2 sqrt(K)
+`(nodes, cells)` carries instead of K, every epoch recomputed in the backward pass. float64.
+
+Guard (`tune`): the start and the tuned values are run as `calibrate` runs them (hard cut, its
+cell size and likelihood path, the whole dataset); the tuned values are kept only if better.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -42,12 +55,22 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
 
+from jaxcal import tune_eval
 from jaxcal.data import MeshDataset
 from jaxcal.errors import JaxcalError
 from jaxcal.mesh import grid as G
 from jaxcal.mesh import pgp
-from jaxcal.mesh.frame import to_frame
+from jaxcal.mesh.segmented import filter_segmented, segment_length
 from jaxcal.params import with_overrides
+from jaxcal.progress import ProgressCallback
+from jaxcal.tune_metrics import (
+    final_rmse,
+    grid_span_m,
+    neg_log_predictive,
+    track_rmse,
+    truth_in_filter_order,
+    window,
+)
 
 __all__ = [
     "OBJECTIVES",
@@ -58,13 +81,15 @@ __all__ = [
     "track_rmse",
     "final_rmse",
     "neg_log_predictive",
+    "grid_span_m",
     "Problem",
     "make_problem",
     "objective",
     "tune",
 ]
 
-OBJECTIVES = ("truth", "evidence")
+OBJECTIVES = ("evidence", "truth", "nlpl")
+HELDOUT_EPS_M = 0.05  # smooths |r| at 0 (gradient) in the evidence loss
 TUNED = ("sigma_r", "sigma_v", "tau")
 # tuned as well when range_model="mixture" (theta entries 3 and 4)
 TUNED_MIXTURE = ("nlos_weight", "nlos_mean_m")
@@ -74,80 +99,6 @@ _LOGIT = ("tau", "nlos_weight")  # in (0, 1); the others are positive (log)
 def tuned_names(range_model: str) -> tuple[str, ...]:
     """Names of theta's entries, in order, for a range model."""
     return TUNED + (TUNED_MIXTURE if range_model == "mixture" else ())
-
-
-def window(dataset: MeshDataset, epochs: int | None) -> MeshDataset:
-    """The first `epochs` epochs of a mesh dataset (all of them when None or larger)."""
-    if epochs is None or epochs >= dataset.n_epochs:
-        return dataset
-    if epochs < 1:
-        raise JaxcalError(f"epochs: must be >= 1, got {epochs}")
-    k = int(epochs)
-    opt = {
-        f: getattr(dataset, f)[:k]
-        for f in ("fp_rssi", "rx_rssi")
-        if getattr(dataset, f) is not None
-    }
-    return dataclasses.replace(dataset, time=dataset.time[:k], range=dataset.range[:k], **opt)
-
-
-def truth_in_filter_order(
-    dataset: MeshDataset, config: str | None, order: np.ndarray
-) -> np.ndarray:
-    """(N, 2) true positions in the configuration frame, rows in filter order; NaN when unknown.
-
-    As `metrics.truth_in_result_frame`: the frame is built in 3-D when the truth is 3-D, then x, y.
-    """
-    n = dataset.n_nodes
-    if dataset.truth is None:
-        return np.full((n, 2), np.nan)
-    a0, a1, a2 = dataset.config(config)
-    t = dataset.truth
-    if not np.isfinite(t[[a0, a1, a2]]).all():
-        return np.full((n, 2), np.nan)
-    return to_frame(t, a0, a1, a2)[:, :2][order]
-
-
-def track_rmse(
-    est: Float[Array, "epochs nodes 2"], truth: Float[Array, "nodes 2"]
-) -> Float[Array, ""]:
-    """RMSE [m] over every finite (epoch, node) estimate except node 0 (a0) with a known truth.
-
-    Differentiable: missing estimates are replaced before squaring, so their NaN never reaches a
-    gradient. NaN when no estimate counts.
-    """
-    ok = jnp.isfinite(est).all(-1) & jnp.isfinite(truth).all(-1)[None, :]
-    ok = ok.at[:, 0].set(False)
-    t = jnp.where(jnp.isfinite(truth), truth, 0.0)
-    e = jnp.where(ok[..., None], est, t[None]) - t[None]
-    cnt = jnp.sum(ok)
-    mse = jnp.sum(e * e) / jnp.maximum(cnt, 1)
-    return jnp.where(cnt > 0, jnp.sqrt(jnp.where(cnt > 0, mse, 1.0)), jnp.nan)
-
-
-def final_rmse(
-    est: Float[Array, "epochs nodes 2"], truth: Float[Array, "nodes 2"]
-) -> Float[Array, ""]:
-    """RMSE [m] of the last epoch's estimates, a0 excluded (`final_rmse_m` of `jaxcal evaluate`)."""
-    return track_rmse(est[-1:], truth)
-
-
-def neg_log_predictive(
-    out: pgp.FilterOut, sigma_r: Float[Array, ""], p_out: Float[Array, ""], span_m: float
-) -> Float[Array, ""]:
-    """Negative log predictive likelihood of the ranges [nats per range factor] (module docstring).
-
-    Args:
-        out: per-epoch filter outputs (`log_evidence`, `n_factors` of shape (K, N)).
-        sigma_r: range std [m]. p_out: floor weight. span_m: L, support of the range density [m].
-
-    Returns:
-        `-(sum log_evidence - n_factors log Z) / sum n_factors`; NaN when no range was used.
-    """
-    log_z = jnp.log((1.0 - p_out) * sigma_r * math.sqrt(2 * math.pi) + p_out * span_m)
-    n = jnp.sum(out.n_factors)
-    total = jnp.sum(out.log_evidence) - n * log_z
-    return jnp.where(n > 0, -total / jnp.maximum(n, 1.0), jnp.nan)
 
 
 class Problem(eqx.Module):
@@ -161,11 +112,9 @@ class Problem(eqx.Module):
     est_temp: Float[Array, ""]
     span_m: float = eqx.field(static=True)
     kind: str = eqx.field(static=True)
-
-
-def grid_span_m(cfg: pgp.FilterConfig) -> float:
-    """L of the evidence density: the longest distance between two cells of the grid [m]."""
-    return 2.0 * math.sqrt(2.0) * cfg.grid.n_half * cfg.grid.cell_m
+    segment: int = eqx.field(static=True, default=0)  # epochs per checkpointed segment (0: sqrt)
+    folds: Array | None = None  # (F, N, N) bool held-out pairs (evidence)
+    targets: Float[Array, "nodes nodes"] | None = None  # median range per pair [m] (evidence)
 
 
 def make_problem(
@@ -176,15 +125,17 @@ def make_problem(
     tau_temp: float = 0.05,
     remat: bool = True,
     est_temp: float = 10.0,
+    segment: int | None = None,
 ) -> tuple[Problem, np.ndarray]:
     """Prepare the filter for tuning (soft hypothesis cut, rematerialised epochs).
 
     Args:
         dataset: the (windowed) mesh dataset. params: filter parameters (the start point).
-        config: frame configuration name. kind: "truth" or "evidence".
+        config: frame configuration name. kind: "evidence", "truth" or "nlpl".
         tau_temp: temperature of the soft cut (mass units; 0 gives the hard rule, not differentiable
             in tau). remat: checkpoint every epoch (memory ~ epochs x carry).
         est_temp: temperature of the `truth` objective's estimate (`soft_estimates`, nats).
+        segment: epochs per checkpointed segment of the scan (None: ceil(sqrt(epochs))).
 
     Returns:
         (Problem, order): `order[k]` is the dataset index of filter node k.
@@ -201,6 +152,16 @@ def make_problem(
         raise JaxcalError(
             f"{dataset.name}: objective 'truth' needs ground truth (use --objective evidence)"
         )
+    folds = targets = None
+    if kind == "evidence":
+        fl = tune_eval.pair_folds(dataset.n_nodes)
+        if not fl:
+            kind = "nlpl"  # fewer than 5 nodes: no pair to hold out
+        else:
+            folds = jnp.asarray(np.stack(fl))
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # pairs never measured: NaN
+                targets = jnp.asarray(np.nanmedian(np.asarray(inp.z, np.float64), axis=0), ftype)
     prob = Problem(
         cfg,
         prm,
@@ -210,6 +171,9 @@ def make_problem(
         jnp.asarray(est_temp, ftype),
         grid_span_m(cfg),
         kind,
+        int(segment or 0),
+        folds,
+        targets,
     )
     return prob, order
 
@@ -257,18 +221,42 @@ def values_of(theta) -> dict[str, float]:
 
 
 def objective(theta: Float[Array, " p"], prob: Problem) -> Float[Array, ""]:
-    """Objective at theta (`theta_of`): RMSE [m] or NLPL [nats]."""
+    """Objective at theta (`theta_of`): held-out range loss [m], RMSE [m] or NLPL [nats]."""
     prm = _with_theta(prob.prm, theta)
-    st, out = pgp._filter(prob.cfg, prm, prob.inp, prob.logpost0)
+    if prob.kind == "evidence":
+        return _heldout_loss(prm, prob)
+    st, out = filter_segmented(prob.cfg, prm, prob.inp, prob.logpost0, prob.segment or None)
     if prob.kind == "truth":
-        radius = jnp.maximum(prm.r_est, 1.5 * prob.cfg.grid.cell_m)
-        est = soft_estimates(
-            st.logpost, prob.cfg.grid.cells(st.logpost.dtype), radius, prob.est_temp
-        )
-        loc = jnp.isfinite(out.estimate[-1]).all(-1)
-        est = jnp.where(loc[:, None], est, jnp.nan)
-        return final_rmse(est[None], prob.truth)
+        return final_rmse(_final_estimates(st, out, prm, prob)[None], prob.truth)
     return neg_log_predictive(out, prm.sigma_r, prm.p_out, prob.span_m)
+
+
+def _final_estimates(st, out, prm, prob: Problem):
+    """Tempered eq. (13) final positions (N, 2); NaN for nodes not localised."""
+    radius = jnp.maximum(prm.r_est, 1.5 * prob.cfg.grid.cell_m)
+    est = soft_estimates(st.logpost, prob.cfg.grid.cells(st.logpost.dtype), radius, prob.est_temp)
+    loc = jnp.isfinite(out.estimate[-1]).all(-1)
+    return jnp.where(loc[:, None], est, jnp.nan)
+
+
+def _heldout_loss(prm: pgp.FilterParams, prob: Problem) -> Float[Array, ""]:
+    """The evidence objective (module docstring): per fold, run without its pairs, predict them."""
+
+    def fold(m):
+        inp = dataclasses.replace(prob.inp, z=jnp.where(m[None], jnp.nan, prob.inp.z))
+        st, out = filter_segmented(prob.cfg, prm, inp, prob.logpost0, prob.segment or None)
+        est = _final_estimates(st, out, prm, prob)
+        ok = jnp.triu(m, 1) & jnp.isfinite(prob.targets) & jnp.isfinite(est).all(-1)[:, None]
+        ok = ok & jnp.isfinite(est).all(-1)[None, :]
+        e = jnp.where(jnp.isfinite(est), est, 0.0)
+        d = G.safe_norm(e[:, None, :] - e[None, :, :])
+        r = jnp.where(ok, jnp.where(ok, prob.targets, 0.0) - d, 0.0)
+        loss = jnp.where(ok, jnp.sqrt(r * r + HELDOUT_EPS_M**2), 0.0)
+        return jnp.sum(loss), jnp.sum(ok)
+
+    total, count = jax.lax.map(fold, prob.folds)
+    n = jnp.sum(count)
+    return jnp.where(n > 0, jnp.sum(total) / jnp.maximum(n, 1), jnp.nan)
 
 
 def soft_estimates(
@@ -285,25 +273,44 @@ def soft_estimates(
     return jax.vmap(G.window_estimate, in_axes=(0, None, None))(lp / est_temp, cells, r_est)
 
 
-@eqx.filter_jit
-def _minimise(theta0, prob: Problem, rtol: float, atol: float, max_steps: int):
+def _bfgs(theta0, prob: Problem, rtol: float, atol: float, max_steps: int, on_step=None):
+    """Optimistix BFGS stepped from Python (one objective-and-gradient evaluation per step), so
+    that a caller can show progress. Returns (theta, steps, converged, message)."""
     solver = optx.BFGS(rtol=rtol, atol=atol)
-    return optx.minimise(objective, solver, theta0, args=prob, max_steps=max_steps, throw=False)
+
+    def fn(theta, args):
+        v = objective(theta, args)
+        return v, v
+
+    opts: dict = {}
+    tags: frozenset = frozenset()
+    f_struct = jax.ShapeDtypeStruct((), theta0.dtype)
+    step = eqx.filter_jit(
+        lambda y, state, args: solver.step(fn, y, args, opts, state, tags)
+    )
+    terminate = eqx.filter_jit(
+        lambda y, state, args: solver.terminate(fn, y, args, opts, state, tags)
+    )
+    state = solver.init(fn, theta0, prob, opts, f_struct, f_struct, tags)
+    theta, steps = theta0, 0
+    done, result = terminate(theta, state, prob)
+    while not bool(done) and steps < max_steps:
+        theta, state, value = step(theta, state, prob)
+        steps += 1
+        if on_step is not None:
+            on_step(steps, float(value))
+        done, result = terminate(theta, state, prob)
+    ok = bool(done) and result == optx.RESULTS.successful
+    if ok:
+        message = "converged"
+    elif bool(done):
+        message = str(optx.RESULTS[result]).split(".")[0]
+    else:
+        message = f"stopped at {max_steps} steps"
+    return theta, steps, ok, message
 
 
 _value = eqx.filter_jit(objective)
-
-
-def _hard_metrics(theta, prob: Problem) -> dict[str, float]:
-    """RMSE, final RMSE, NLPL with the hard cut of eq. (10) (what `calibrate` runs)."""
-    prm = _with_theta(prob.prm, theta)
-    cfg = dataclasses.replace(prob.cfg, select="hard", remat=False)
-    _, out = pgp.run_filter(cfg, prm, prob.inp, prob.logpost0)
-    return {
-        "rmse_m": float(track_rmse(out.estimate, prob.truth)),
-        "final_rmse_m": float(final_rmse(out.estimate, prob.truth)),
-        "nlpl": float(neg_log_predictive(out, prm.sigma_r, prm.p_out, prob.span_m)),
-    }
 
 
 @dataclasses.dataclass(frozen=True)
@@ -311,27 +318,62 @@ class TuneResult:
     """Outcome of `tune`.
 
     Attributes:
-        params: the fitted values {sigma_r [m], sigma_v [m per epoch], tau} (plus nlos_weight,
-            nlos_mean_m [m] with the mixture range model).
-        start: the start values (same keys).
-        objective: "truth" or "evidence".
-        before, after: objective value (soft cut) at the start and the end.
-        hard_before, hard_after: {rmse_m, final_rmse_m, nlpl} with the hard cut on the window.
-        steps: optimiser steps. converged: whether Optimistix reports success. message: its result.
-        settings: window and grid used {epochs, cell_m, n_cells_side, tau_temp, dtype}.
+        params: the values to use {sigma_r [m], sigma_v [m per epoch], tau} (plus nlos_weight,
+            nlos_mean_m [m] with the mixture range model): the tuned ones when `accepted`, else the
+            start.
+        start: the start values; tuned: what the optimiser ended at (same keys).
+        objective: "evidence", "truth" or "nlpl" (as asked; `settings["objective_used"]` says
+            when evidence fell back to nlpl).
+        before, after: the gradient objective (soft cut, on the tuning data) at start and end.
+        hard_before, hard_after: `check` of the start and of the tuned values: the filter exactly
+            as `calibrate` runs it (hard cut, its cell size and likelihood path, the whole dataset)
+            {rmse_m, final_rmse_m, availability, nlpl[, heldout_m]}.
+        accepted: whether the tuned values are better than the start under the guard's figure
+            (`hard_key`: `rmse_m` for truth, the held-out range error for evidence).
+        steps: BFGS steps. converged: whether BFGS met its tolerance. message: how it ended.
+        settings: {epochs, cell_m, check_cell_m, n_cells_side, segment, tau_temp, dtype, ...}.
+        seconds: {tune, check}: wall time of the gradient phase and of the two hard runs.
     """
 
     params: dict
     start: dict
+    tuned: dict
     objective: str
     before: float
     after: float
     hard_before: dict
     hard_after: dict
+    accepted: bool
     steps: int
     converged: bool
     message: str
     settings: dict
+    seconds: dict
+
+    @property
+    def hard_key(self) -> str:
+        """The hard figure the guard compared (`hard_key`)."""
+        return hard_key(self.objective, self.hard_before)
+
+
+def hard_key(objective_name: str, hard_before: dict) -> str:
+    """The guard's figure: `rmse_m` for truth; for evidence the cross-validated `heldout_m` (the
+    filter's own `nlpl` ranks parameters unlike accuracy, docs/benchmarks/tuning.md), or `nlpl`
+    when no pair can be held out (fewer than 5 nodes)."""
+    if objective_name == "truth":
+        return "rmse_m"
+    if objective_name == "evidence" and math.isfinite(hard_before.get("heldout_m", math.nan)):
+        return "heldout_m"
+    return "nlpl"
+
+
+def check(dataset: MeshDataset, params, config: str | None, objective_name: str) -> dict:
+    """The guard's figures of `params` as `calibrate` runs them (`tune_eval.hard_metrics`, plus
+    the cross-validated `heldout_m` for the evidence objective)."""
+    m = tune_eval.hard_metrics(dataset, params, config)
+    if objective_name == "evidence":
+        m["heldout_m"] = tune_eval.heldout_range_error(dataset, params, config)
+    return m
 
 
 def tune(
@@ -339,70 +381,117 @@ def tune(
     params: pgp.PGPParams | dict | None = None,
     config: str | None = None,
     *,
-    objective_name: str = "truth",
-    epochs: int | None = 200,
+    objective_name: str = "evidence",
+    epochs: int | None = None,
+    cell_m: float | None = None,
     tau_temp: float = 0.05,
-    max_steps: int = 30,
+    max_steps: int = 12,
     rtol: float = 1e-3,
     atol: float = 1e-4,
+    segment: int | None = None,
+    progress: ProgressCallback | None = None,
+    on_step: Callable[[int, float], None] | None = None,
 ) -> TuneResult:
     """Fit sigma_r, sigma_v and tau (and with `range_model="mixture"` nlos_weight and
-    nlos_mean_m) of the PGP filter by BFGS on the tuning objective.
+    nlos_mean_m) of the PGP filter by BFGS; keep them only if `calibrate` does better with them.
+
+    Gradient phase: BFGS on the objective with the soft cut of tau, over the first `epochs` epochs
+    (None: all) on a grid of `cell_m` cells (None: `params.cell_m`, calibrate's), the filter's
+    likelihood path from `params`, in float64, the scan in checkpointed segments of `segment` epochs
+    (`mesh.segmented`: memory ~ 2 sqrt(K) carries). Guard: `tune_eval.hard_metrics` of the start
+    and of the end on the whole dataset with `params` as `calibrate` will run them; the tuned values
+    are returned only if their hard figure (`hard_key`: `rmse_m` for truth, for evidence the
+    cross-validated range error of held-out pairs, `tune_eval.heldout_range_error`) is lower.
 
     Args:
         dataset: a mesh dataset (ground truth needed for `objective_name="truth"`).
-        params: start point and fixed parameters (`PGPParams` or overrides; `cell_m` sets the grid).
+        params: `calibrate`'s parameters (`PGPParams` or overrides): the start point and the
+            settings the guard checks with.
         config: frame configuration name.
-        objective_name: "truth" (RMSE [m]) or "evidence" (NLPL [nats per range]).
-        epochs: tuning window, the first `epochs` epochs (None: all).
-        tau_temp: temperature of the soft cut of tau. max_steps, rtol, atol: BFGS settings.
+        objective_name: "evidence" (NLPL [nats per range], no truth) or "truth" (RMSE [m]).
+        epochs, cell_m: a cheaper surrogate for the gradient phase (None: what calibrate runs).
+        tau_temp: temperature of the soft tau cut. max_steps, rtol, atol: BFGS settings.
+        segment: epochs per checkpointed segment (None: ceil(sqrt(K))).
+        progress: called with 1 after every BFGS step. on_step: called with (step, objective).
 
     Returns:
-        A `TuneResult`; the fitted values go into `jaxcal calibrate --params`.
+        A `TuneResult`; `params` go into `jaxcal calibrate --params`.
     """
+    import time
+
+    if objective_name not in OBJECTIVES:
+        raise JaxcalError(f"objective: one of {', '.join(OBJECTIVES)}; got {objective_name!r}")
     if not isinstance(params, pgp.PGPParams):
         params = with_overrides(pgp.PGPParams(), params)
     if dataset.n_epochs == 0:
         raise JaxcalError(f"{dataset.name}: no epochs to tune on")
+    surrogate = params if cell_m is None else dataclasses.replace(params, cell_m=float(cell_m))
     ds = window(dataset, epochs)
-    prob, _ = make_problem(ds, params, config, objective_name, tau_temp)
-    dtype = prob.logpost0.dtype
     mix = params.range_model == "mixture"
-    theta0 = theta_of(
-        params.sigma_r, params.sigma_v, params.tau, dtype,
-        nlos_weight=params.nlos_weight if mix else None,
-        nlos_mean_m=params.nlos_mean_m,
-    )
-    before = float(_value(theta0, prob))
-    if not math.isfinite(before):
-        raise JaxcalError(
-            f"{dataset.name}: the objective is undefined at the start (no node localised?)"
+    t0 = time.perf_counter()
+    with jax.enable_x64(True):  # gradients through thousands of log-posterior epochs need float64
+        prob, _ = make_problem(ds, surrogate, config, objective_name, tau_temp, segment=segment)
+        dtype = prob.logpost0.dtype
+        theta0 = theta_of(
+            params.sigma_r, params.sigma_v, params.tau, dtype,
+            nlos_weight=params.nlos_weight if mix else None,
+            nlos_mean_m=params.nlos_mean_m,
         )
-    sol = _minimise(theta0, prob, rtol, atol, max_steps)
-    theta = sol.value
-    after = float(_value(theta, prob))
-    if not math.isfinite(after) or after > before:  # never hand back a worse point than the start
-        theta, after = theta0, before
-    ok = sol.result == optx.RESULTS.successful
+        before = float(_value(theta0, prob))
+        if not math.isfinite(before):
+            raise JaxcalError(
+                f"{dataset.name}: the objective is undefined at the start (no node localised?)"
+            )
+
+        def step_cb(k, v):
+            if progress is not None:
+                progress(1)
+            if on_step is not None:
+                on_step(k, v)
+
+        theta, steps, ok, message = _bfgs(theta0, prob, rtol, atol, max_steps, step_cb)
+        after = float(_value(theta, prob))
+        if not math.isfinite(after) or after > before:  # the optimiser's end is never worse
+            theta, after = theta0, before
+    t1 = time.perf_counter()
+    start, tuned = values_of(theta0), values_of(theta)
+    hard_before = check(dataset, params, config, objective_name)
+    hard_after = (
+        dict(hard_before)  # the optimiser did not move: nothing to check
+        if tuned == start
+        else check(dataset, with_overrides(params, tuned), config, objective_name)
+    )
+    key = hard_key(objective_name, hard_before)
+    accepted = math.isfinite(hard_after[key]) and (
+        not math.isfinite(hard_before[key]) or hard_after[key] < hard_before[key]
+    )
     return TuneResult(
-        params=values_of(theta),
-        start=values_of(theta0),
+        params=tuned if accepted else start,
+        start=start,
+        tuned=tuned,
         objective=objective_name,
         before=before,
         after=after,
-        hard_before=_hard_metrics(theta0, prob),
-        hard_after=_hard_metrics(theta, prob),
-        steps=int(sol.stats["num_steps"]),
-        converged=bool(ok),
-        message="successful" if ok else str(optx.RESULTS[sol.result]).split(".")[0],
+        hard_before=hard_before,
+        hard_after=hard_after,
+        accepted=accepted,
+        steps=steps,
+        converged=ok,
+        message=message,
         settings={
             "epochs": ds.n_epochs,
-            "cell_m": params.cell_m,
+            "cell_m": surrogate.cell_m,
+            "check_cell_m": params.cell_m,
+            "check_epochs": dataset.n_epochs,
+            "likelihood": params.likelihood,
+            "objective_used": prob.kind,
             "n_cells_side": prob.cfg.grid.n_side,
+            "segment": prob.segment or segment_length(ds.n_epochs),
             "tau_temp": tau_temp,
             "dtype": str(dtype),
             "rtol": rtol,
             "atol": atol,
             "max_steps": max_steps,
         },
+        seconds={"tune": t1 - t0, "check": time.perf_counter() - t1},
     )

@@ -1,0 +1,105 @@
+"""Parameters judged the way `jaxcal calibrate` runs them: the hard filter, no gradients.
+
+`tune` checks its start and its end with these (the guard: the tuned values are kept only when they
+are better here), and the tuning benchmarks rank parameter sets with them.
+
+- `hard_metrics`: one run of the filter exactly as `calibrate --method pgp` runs it (`pgp.prepare`,
+  hard hypothesis cut of eq. 10, `pgp.run_chunked`, the caller's float precision: float32 unless
+  64-bit is enabled, as in `calibrate`), reduced to `rmse_m` (every localised (epoch, node)
+  estimate against the truth in the configuration frame, a0 excluded: `jaxcal evaluate`'s figure),
+  `final_rmse_m`, `availability` and `nlpl` (`tune.neg_log_predictive`: the filter's own
+  predictive likelihood of the ranges, nats per range factor).
+- `heldout_range_error`: a no-truth score by cross-validation over pairs. The pairs between
+  non-anchor nodes (filter order >= 3, so a1 and a2 keep their references of eq. 5-6) are split
+  into `n_folds` folds; per fold the filter runs without that fold's ranges and the held-out ranges
+  are predicted from the estimates, `|x_i - x_j|`. Score: per held-out pair the median over epochs
+  of `|z - |x_i - x_j||` (a median, so the NLOS outliers of a pair do not dominate), averaged over
+  pairs and folds [m]. Lower is better. A node placed wrongly (mirrored, or pulled by an outlier
+  ring) mispredicts the ranges it was not fitted to; the filter's own predictive likelihood only
+  sees ranges it then also conditions on.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.data import MeshDataset
+from jaxcal.mesh import pgp
+from jaxcal.params import with_overrides
+from jaxcal.tune_metrics import grid_span_m, neg_log_predictive, track_rmse, truth_in_filter_order
+
+__all__ = ["hard_run", "hard_metrics", "pair_folds", "heldout_range_error"]
+
+
+def _params(params) -> pgp.PGPParams:
+    return params if isinstance(params, pgp.PGPParams) else with_overrides(pgp.PGPParams(), params)
+
+
+def hard_run(dataset: MeshDataset, params, config: str | None, z_mask=None):
+    """`calibrate`'s filter run -> (cfg, prm, FilterOut, order); `z_mask` (N, N) bool in filter
+    order removes those pairs' ranges (both directions)."""
+    p = _params(params)
+    cfg, prm, inp, lp0, order = pgp.prepare(dataset, p, config, "pgp")
+    if z_mask is not None:
+        import dataclasses
+
+        inp = dataclasses.replace(inp, z=jnp.where(jnp.asarray(z_mask)[None], jnp.nan, inp.z))
+    _, out = pgp.run_chunked(cfg, prm, inp, lp0)
+    return cfg, prm, out, order
+
+
+def hard_metrics(dataset: MeshDataset, params, config: str | None) -> dict[str, float]:
+    """{rmse_m, final_rmse_m, availability, nlpl} of one `calibrate` run (module docstring);
+    the RMSEs are NaN without ground truth."""
+    cfg, prm, out, order = hard_run(dataset, params, config)
+    truth = jnp.asarray(truth_in_filter_order(dataset, config, order), out.estimate.dtype)
+    est = out.estimate
+    have = np.isfinite(np.asarray(est)).all(-1)[:, 1:]
+    return {
+        "rmse_m": float(track_rmse(est, truth)),
+        "final_rmse_m": float(track_rmse(est[-1:], truth)),
+        "availability": float(have.mean()) if have.size else math.nan,
+        "nlpl": float(neg_log_predictive(out, prm.sigma_r, prm.p_out, grid_span_m(cfg))),
+    }
+
+
+def pair_folds(n_nodes: int, n_folds: int = 2, seed: int = 0) -> list[np.ndarray]:
+    """Held-out pair masks (N, N) bool in filter order: the pairs among nodes >= 3, shuffled with
+    `seed` and dealt into `n_folds` folds (every pair in exactly one fold). Empty when N < 5."""
+    pairs = [(i, j) for i in range(3, n_nodes) for j in range(i + 1, n_nodes)]
+    if len(pairs) < n_folds:
+        return []
+    idx = np.random.default_rng(seed).permutation(len(pairs))
+    folds = []
+    for f in range(n_folds):
+        m = np.zeros((n_nodes, n_nodes), dtype=bool)
+        for t in idx[f::n_folds]:
+            i, j = pairs[t]
+            m[i, j] = m[j, i] = True
+        folds.append(m)
+    return folds
+
+
+def heldout_range_error(
+    dataset: MeshDataset, params, config: str | None, n_folds: int = 2, seed: int = 0
+) -> float:
+    """Cross-validated range error over pairs [m] (module docstring); NaN when no held-out pair
+    has both estimates and a range."""
+    p = _params(params)
+    n = dataset.n_nodes
+    scores = []
+    for m in pair_folds(n, n_folds, seed):
+        _, _, out, order = hard_run(dataset, p, config, z_mask=m)
+        z = pgp.symmetric_ranges(np.asarray(dataset.range, dtype=np.float64))[:, order][:, :, order]
+        est = np.asarray(out.estimate, dtype=np.float64)
+        ii, jj = np.nonzero(np.triu(m))
+        d = np.linalg.norm(est[:, ii] - est[:, jj], axis=-1)  # (K, P)
+        e = np.abs(z[:, ii, jj] - d)
+        for c in range(e.shape[1]):
+            col = e[:, c][np.isfinite(e[:, c])]
+            if col.size:
+                scores.append(float(np.median(col)))
+    return float(np.mean(scores)) if scores else math.nan
