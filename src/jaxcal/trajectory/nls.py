@@ -41,8 +41,8 @@ class NLSParams(TrajectoryParams):
         bias: estimate a constant range bias per anchor.
         n_irls: reweighting rounds. max_steps: Levenberg-Marquardt steps per round.
         n_clusters: stretches of consecutive ranges per anchor for the cluster-robust covariance.
-        min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s, max_gap_s, time_offset_s, estimate_offset,
-        max_offset_s: as for `ls`.
+        min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s: as for `ls`, and so are
+            max_gap_s, time_offset_s, estimate_offset, max_offset_s.
     """
 
     loss: str = "cauchy"
