@@ -113,6 +113,9 @@ def test_writer_refuses_a_covariance_that_is_not_psd(tmp_path):
     with pytest.raises(FormatError, match="symmetric"):
         hdf5.write(tmp_path / "r.h5", Result(covariance=asym, **base))
     assert not (tmp_path / "r.h5").exists()
+    # float32 rounding of a symmetric block (the command line computes in float32) is not refused
+    near = np.stack([np.eye(2), np.array([[0.25764145, 0.23082632], [0.2308263, 0.59473445]])])
+    hdf5.write(tmp_path / "r.h5", Result(covariance=near, **base))
     # NaN blocks (no estimate) and a NaN coordinate (unobservable axis) are not refused
     ok = np.stack([np.full((2, 2), np.nan), np.array([[1.0, np.nan], [np.nan, np.nan]])])
     hdf5.write(tmp_path / "r.h5", Result(covariance=ok, **base))

@@ -211,10 +211,13 @@ def _write_root(f, fmt: str, name: str, obj) -> None:
 
 def check_covariance(cov, ids) -> None:
     """Refuse a result covariance that is not a covariance: every finite (D, D) block must be symmetric
-    positive semi-definite (to a relative 1e-9 of its scale); NaN entries of a block are left out with
-    their row and column (an unobservable coordinate). Raises FormatError naming the first bad id."""
+    positive semi-definite to float32 precision (a relative 1e-5 of its scale: the command line computes
+    in float32, and `Result` stores every covariance as float64, so the precision it came from is not
+    known here); NaN entries of a block are left out with their row and column (an unobservable
+    coordinate). Raises FormatError naming the first bad id."""
     if cov is None:
         return
+    tol = 1e-5
     c = np.asarray(cov, dtype=np.float64)
     for k in range(c.shape[0]):
         fin = np.isfinite(np.diag(c[k]))
@@ -222,8 +225,8 @@ def check_covariance(cov, ids) -> None:
         if b.size == 0:
             continue
         scale = max(float(np.max(np.abs(b))), 1e-300)
-        if not np.isfinite(b).all() or np.max(np.abs(b - b.T)) > 1e-9 * scale \
-                or np.min(np.linalg.eigvalsh(0.5 * (b + b.T))) < -1e-9 * scale:
+        if not np.isfinite(b).all() or np.max(np.abs(b - b.T)) > tol * scale \
+                or np.min(np.linalg.eigvalsh(0.5 * (b + b.T))) < -tol * scale:
             name = ids[k] if k < len(ids) else str(k)
             raise FormatError(f"covariance of {name!r} is not symmetric positive semi-definite; refusing to write it")
 
