@@ -473,9 +473,21 @@ def test_live_pgp_over_a_pty_runs_during_the_recording(tmp_path):
 
     rec = Recording("nlink", epoch_s=0.05)
 
+    stop = threading.Event()
+    os.set_blocking(master, False)
+
     def paced():  # about 3.5 s of frames, 0.05 s epochs: about 70 epochs of host time
         for k in range(0, len(data), 350):
-            os.write(master, data[k : k + 350])
+            chunk = data[k : k + 350]
+            while chunk and not stop.is_set():
+                try:
+                    chunk = chunk[os.write(master, chunk) :]
+                except BlockingIOError:  # the pty buffer is full: wait for the reader
+                    time.sleep(0.01)
+                except OSError:
+                    return
+            if stop.is_set():
+                return
             time.sleep(0.05)
 
     w = threading.Thread(target=paced, daemon=True)
@@ -483,7 +495,10 @@ def test_live_pgp_over_a_pty_runs_during_the_recording(tmp_path):
     try:
         why = record_serial(rec, port, tmp_path / "pty.h5", duration=4.5, flush_s=0.5, on_flush=on_flush)
     finally:
-        w.join(timeout=5)
+        # the writer must be gone before its fd is closed: a write after the close would land in
+        # whatever file reuses the number (the full suite once crashed in a later test that way)
+        stop.set()
+        w.join()
         os.close(master)
         os.close(slave)
     live.guarded_update(rec, final=True)
