@@ -37,6 +37,9 @@ STALL_S = 2.0
 RECONNECT_S = 30.0
 GARBAGE_S = 1.0
 GARBAGE_BYTES = 256
+# the DWM1001 shell prints a banner, echoes and prompts (a few hundred bytes of text) before its first
+# location line: until the first valid frame after (re)opening, the garbage rule waits this much longer
+SHELL_START_FACTOR = 4
 STABLE_S = 5.0
 RETRY_S = 0.25
 HINTS = {
@@ -95,6 +98,7 @@ class SerialLink:
         self.bytes_rx = 0
         self.last_frame = t0  # host monotonic time of the last valid frame
         self.bytes_since_frame = 0
+        self._framed = False  # a valid frame since the port was (re)opened
         self.reads = 0
         self.losses = 0
         self.reconnects = 0
@@ -187,6 +191,7 @@ class SerialLink:
             self.frames.put((frames, t))
             self.last_frame = time.monotonic()
             self.bytes_since_frame = 0
+            self._framed = True
         return len(frames)
 
     def _read(self) -> None:
@@ -291,6 +296,7 @@ class SerialLink:
             self.reconnects += 1
             self._up_since = self.last_rx = self.last_frame = time.monotonic()
             self.bytes_since_frame = 0
+            self._framed = False
             self._fault(f"{self.port}: device back after {self._up_since - now:.1f} s; recording goes on")
             if self.shell_init:
                 try:
@@ -319,7 +325,8 @@ class SerialLink:
             self._stalled = False
             out.append(f"{self.port}: data again after {self.last_gap:.1f} s of silence")
         since, nbytes = now - self.last_frame, self.bytes_since_frame
-        if nbytes >= GARBAGE_BYTES and since >= GARBAGE_S and not self._garbage:
+        k = SHELL_START_FACTOR if self.protocol == "dwm1001-shell" and not self._framed else 1
+        if nbytes >= k * GARBAGE_BYTES and since >= k * GARBAGE_S and not self._garbage:
             self._garbage = True
             out.append(f"{self.port}: {nbytes} bytes in {since:.1f} s but no valid frame: wrong --baud "
                        f"(now {self.baud}) or --protocol (now {self.protocol})?")
