@@ -3,7 +3,6 @@ state their dtype explicitly and their tests give loose tolerances with a commen
 
 from __future__ import annotations
 
-import gc
 import os
 import subprocess
 import sys
@@ -12,6 +11,8 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+
+from jaxcal.executables import release_if_crowded
 
 jax.config.update("jax_enable_x64", True)
 
@@ -61,28 +62,12 @@ def rng(rng_seed):
     return np.random.default_rng(rng_seed)
 
 
-# Every XLA:CPU executable keeps about three anonymous memory maps (code, constants, data) while it is
-# alive, and jit caches keep every executable alive. One pytest process compiles thousands of them; at
-# the kernel's vm.max_map_count (65,530 here) the next compile cannot map its code and XLA segfaults
-# (seen in CI inside test_tune and test_sweep, never when those files run alone). Dropping JAX's caches
-# frees the executables and their maps (measured: 300 compiles 424 -> 1,389 maps, cleared -> 506).
-_MAPS_LIMIT = 20_000
-
-
-def _map_count() -> int:
-    try:
-        with open("/proc/self/maps", "rb") as f:
-            return sum(1 for _ in f)
-    except OSError:  # no procfs (macOS): nothing to measure
-        return 0
-
-
 @pytest.fixture(autouse=True)
 def _release_executables_when_maps_run_high():
+    """One pytest process compiles thousands of XLA programs; at the kernel's vm.max_map_count the
+    next compile segfaulted (CI: test_tune, earlier test_sweep). See `jaxcal.executables`."""
     yield
-    if _map_count() > _MAPS_LIMIT:
-        jax.clear_caches()
-        gc.collect()
+    release_if_crowded()
 
 
 def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600, env: dict | None = None):

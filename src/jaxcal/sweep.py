@@ -55,6 +55,7 @@ from jaxtyping import Array, Float
 
 from jaxcal.data import MeshDataset
 from jaxcal.errors import JaxcalError
+from jaxcal.executables import release_if_crowded
 from jaxcal.mesh import grid as G
 from jaxcal.mesh import pgp
 from jaxcal.params import with_overrides
@@ -463,6 +464,7 @@ def execute(
                 if progress is not None:
                     progress(int(todo.size))
             yield todo, {k: np.asarray(v, np.float64)[: todo.size] for k, v in out.items()}
+        release_if_crowded()  # many groups (grid shapes) compile many programs: stay below the map limit
 
 
 def _per_device(mesh, per: int, work) -> dict:
