@@ -91,11 +91,6 @@ def test_metrics_equal_single_runs_and_evaluate(extra, grid):
 
 # one case: the compilations of the fast path dominate (parametric and the mixture kernel take the
 # same execution path; their sweep metrics are checked against run_pgp in the tests above)
-@pytest.mark.skipif(
-    os.environ.get("JAXCAL_FULL_SUITE_SWEEP_FASTPATH") != "1",
-    reason="KNOWN BUG: in the full suite (one process) its XLA compile of run_chunked segfaults (twice in "
-    "fresh-clone CI runs, 2026-11-24); passes alone and in smaller runs. Set JAXCAL_FULL_SUITE_SWEEP_FASTPATH=1.",
-)
 @pytest.mark.parametrize("method, range_model", [("pgp", "gaussian")])
 def test_sequential_fast_path_equals_run_pgp_bit_for_bit(method, range_model):
     """CPU execution: every run is `run_pgp`'s windowed fast path, so the numbers are identical."""
