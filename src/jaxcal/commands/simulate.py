@@ -1,4 +1,9 @@
-"""`jaxcal simulate {mesh,trajectory} -o OUT.h5 [--scenario NAME] [--seed S] [--drift X]`."""
+"""`jaxcal simulate {mesh,trajectory} -o OUT.h5 [--scenario NAME] [--seed S] [--drift X]`.
+
+Large mesh networks at constant density (`jaxcal.sim.network`):
+`jaxcal simulate mesh --scenario network --nodes N [--density D] [--range-limit R] [--wall-density W]
+[--epochs K] -o OUT.h5`.
+"""
 
 from __future__ import annotations
 
@@ -11,8 +16,17 @@ def add_arguments(p) -> None:
     p.add_argument(
         "--scenario",
         default=None,
-        help="built-in scenario (mesh: torgau, small; trajectory: campus)",
+        help="built-in scenario (mesh: torgau, small, network; trajectory: campus)",
     )
+    net = p.add_argument_group("mesh --scenario network (random site at constant density)")
+    net.add_argument("--nodes", type=int, default=None, help="number of nodes N (>= 4)")
+    net.add_argument("--density", type=float, default=100.0 / 60.0,
+                     help="nodes per 100 m^2 (default 1.67: 10 nodes in 30 x 20 m)")
+    net.add_argument("--range-limit", type=float, default=28.0,
+                     help="pairs farther apart are never measured [m] (default 28)")
+    net.add_argument("--wall-density", type=float, default=2.0 / 6.0,
+                     help="walls (4-12 m segments) per 100 m^2 (default 0.33: 2 per 600 m^2)")
+    net.add_argument("--epochs", type=int, default=200, help="epochs at 10 Hz (default 200)")
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same file)")
     p.add_argument(
         "--drift",
@@ -44,7 +58,27 @@ def run(args) -> int:
     from jaxcal.errors import JaxcalError
     from jaxcal.io import hdf5
 
-    if args.kind == "mesh":
+    if args.seed < 0:
+        raise JaxcalError(f"--seed must be non-negative, got {args.seed}")
+    if args.kind != "mesh" and args.nodes is not None:
+        raise JaxcalError("--nodes applies to mesh simulation only")
+    network = args.kind == "mesh" and (args.scenario == "network" or args.nodes is not None)
+    if network:
+        from jaxcal.sim.mesh import simulate
+        from jaxcal.sim.network import network_scenario
+
+        if args.scenario not in (None, "network"):
+            raise JaxcalError("--nodes applies to --scenario network only")
+        if args.nodes is None:
+            raise JaxcalError("--scenario network needs --nodes N")
+        if args.drift:
+            raise JaxcalError("--drift applies to trajectory simulation only")
+        scenario = "network"
+        SCENARIOS = {"network": network_scenario(
+            args.nodes, seed=args.seed, density=args.density, range_limit_m=args.range_limit,
+            wall_density=args.wall_density, n_epochs=args.epochs)}
+        kwargs = {}
+    elif args.kind == "mesh":
         from jaxcal.sim.mesh import SCENARIOS, simulate
 
         scenario = args.scenario or "torgau"
@@ -59,10 +93,8 @@ def run(args) -> int:
         raise JaxcalError(
             f"unknown {args.kind} scenario {scenario!r} (known: {', '.join(sorted(SCENARIOS))})"
         )
-    if args.seed < 0:
-        raise JaxcalError(f"--seed must be non-negative, got {args.seed}")
     out = check_output_path(args.output)
-    ds = simulate(scenario, seed=args.seed, **kwargs)
+    ds = simulate(SCENARIOS[scenario] if network else scenario, seed=args.seed, **kwargs)
     hdf5.write(out.path, ds)
     summary = {
         "kind": args.kind,
