@@ -210,3 +210,23 @@ def test_symmetrise_mean_of_both_directions():
     assert s[0, 0, 1] == s[0, 1, 0] == 5.0
     assert s[0, 0, 2] == s[0, 2, 0] == 3.0
     assert np.isnan(s[0, 1, 2]) and np.isnan(s[0, 0, 0])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_thin_frame_triangle_is_placed_through_a_well_spread_proxy(seed):
+    """a0, a1, a2 almost on a line (spread ratio 0.03 < min_spread_ratio): the paper's rule places
+    nothing beyond the frame; the epochs are placed in a well-spread proxy frame instead (issue #18)."""
+    rng = np.random.default_rng(seed)
+    frame = np.array([[0.0, 0.0], [20.0, 0.0], [10.0, 0.5]])  # thin triangle
+    others = rng.uniform((-5.0, -12.0), (25.0, 12.0), (7, 2))
+    truth = np.vstack([frame, others])
+    d = _distances(truth, 40, rng, noise=0.05)
+    ds = MeshDataset(name="thin", node_ids=[f"n{i}" for i in range(10)], time=np.arange(40) * 0.1,
+                     range=d, truth=truth, configs={"c": (0, 1, 2)})
+    own = cf.place_epochs(cf.symmetrise(d), (0, 1, 2))
+    assert np.isfinite(own[:, 3:]).all(axis=2).mean() < 0.5  # the paper's rule stalls
+    res = cf.calibrate(ds, config="c")
+    avail = np.isfinite(res.track_position).all(axis=2).mean(axis=0)
+    assert avail.min() >= 0.95
+    err = np.linalg.norm(res.position - to_frame(truth, 0, 1, 2), axis=1)
+    assert np.median(err) < 0.5

@@ -20,7 +20,11 @@ Per epoch k, with z_ij the measured distance (the mean of i->j and j->i when bot
    is placed in another well-connected frame by the same rule and moved into the configuration's frame
    through its placed a0, a1, a2 (`_proxy`), so a frame pair that never ranges does not leave the whole
    track empty (issue #18); when most epochs lack their own frame, the final positions are the proxy
-   frame's medians moved through the median a0, a1, a2. Epochs with their own frame are unchanged.
+   frame's medians moved through the median a0, a1, a2. The same proxy serves an epoch whose own
+   frame is built but whose rule stalls (a node hears >= 3 nodes yet stays unplaced: a thin a0-a1-a2
+   triangle fails the spread test, so nothing beyond the frame is placed): where the proxy's epoch,
+   moved into the configuration's frame, places more nodes, it replaces the own epoch (not with
+   `anchors_only`, the paper's strict rule). Other epochs with their own frame are unchanged.
    Nodes the measured graph cannot fix at all (`identify.py`) are NaN rows, with one warning line.
 3. The final position of a node is the component-wise median of its per-epoch fixes (robust to the
    NLOS outlier epochs); NaN when it was never placed. The result keeps the per-epoch track, so the
@@ -181,9 +185,10 @@ def _proxy(range_m, dist, track, anchors, p: ClosedFormParams, n_proxy: int = 3)
     Up to `n_proxy` well-connected triples (`identify.choose_frame`, best first) are tried: every epoch
     is placed in the triple's frame by the same rule, the per-node medians are taken there, and the
     triple whose medians best reproduce the median ranges of the pairs touching a0, a1, a2 is preferred
-    (the frame is only as good as those three nodes). Epochs without their own frame are moved into the
-    configuration's frame through that epoch's a0, a1, a2 (`frame.to_frame_track`), from the preferred
-    triple or, where it does not place a0, a1, a2 that epoch, the next; the final
+    (the frame is only as good as those three nodes). Epochs without their own frame, and own epochs
+    whose rule stalled, are moved into the configuration's frame through that epoch's a0, a1, a2
+    (`frame.to_frame_track`) from the frame that places the most nodes in that epoch (ties: the own
+    frame, then the preferred triple); the final
     positions are the proxy's medians moved through the median a0, a1, a2 (one noisy epoch of a1
     rotates everything, the median does not).
 
@@ -196,7 +201,13 @@ def _proxy(range_m, dist, track, anchors, p: ClosedFormParams, n_proxy: int = 3)
 
     a0, a1, a2 = anchors
     own = np.isfinite(track[:, [a1, a2]]).all(axis=(1, 2))
-    if own.all() or track.shape[0] == 0:
+    placed = np.isfinite(track).all(axis=2).sum(axis=1)
+    # a node with >= 3 measured neighbours in an epoch whose own frame left it unplaced: the own
+    # frame's references were too poorly spread (a thin a0-a1-a2 triangle stalls the rule), a
+    # well-spread proxy frame may place it
+    heard = (np.isfinite(dist).sum(axis=2) >= 3).sum(axis=1)
+    stalled = own & (placed < heard) & (not bool(p.anchors_only))  # anchors_only: the paper's strict rule
+    if (own & ~stalled).all() or track.shape[0] == 0:
         return track, None
     med_d = _nanmedian(dist)
     near = np.zeros(med_d.shape, dtype=bool)
@@ -221,9 +232,16 @@ def _proxy(range_m, dist, track, anchors, p: ClosedFormParams, n_proxy: int = 3)
     found_all.sort(key=lambda t: t[:2])
     _, _, tr, med = found_all[0]
     out = track.copy()
-    for *_, tr_k, _ in found_all:  # the best proxy first; epochs where it fails from the next ones
-        todo = ~own & ~np.isfinite(out[:, [a0, a1, a2]]).all(axis=(1, 2))
-        out[todo] = to_frame_track(tr_k[todo], a0, a1, a2)
+    todo = ~own | stalled
+    count = np.where(own, placed, -1)[todo]  # nodes placed in each epoch to redo (-1: no own frame)
+    for *_, tr_k, _ in found_all:  # per epoch, the frame that places the most nodes (ties: own, best proxy)
+        moved = to_frame_track(tr_k[todo], a0, a1, a2)
+        n_moved = np.where(np.isfinite(moved[:, [a0, a1, a2]]).all(axis=(1, 2)),
+                           np.isfinite(moved).all(axis=2).sum(axis=1), -1)
+        more = n_moved > count
+        rows = np.flatnonzero(todo)[more]
+        out[rows] = moved[more]
+        count = np.where(more, n_moved, count)
     try:
         final = to_frame(med, a0, a1, a2)
     except ValueError:
