@@ -71,7 +71,12 @@ def _summary(res, objective: str, out) -> str:
     k = res.hard_key
     unit = " m" if k == "rmse_m" else " nats/range"
     hb, ha = res.hard_before[k], res.hard_after[k]
-    head = f"tune {objective}: {res.steps} steps ({res.message}); start {fmt(res.start)}"
+    st = res.settings
+    on = (
+        f"gradient on {st['epochs']} of {st['check_epochs']} epochs at {st['cell_m']:g} m cells, "
+        f"guard on calibrate's run ({st['check_epochs']} epochs, {st['check_cell_m']:g} m)"
+    )
+    head = f"tune {objective}: {res.steps} steps ({res.message}; {on}); start {fmt(res.start)}"
     if res.accepted:
         return (
             f"{head}; tuned {fmt(res.tuned)}; calibrate's {k} {hb:.4g} -> {ha:.4g}{unit}"
