@@ -356,10 +356,12 @@ def symmetric_ranges(r: np.ndarray) -> np.ndarray:
 
 def _remat(cfg: FilterConfig, fn):
     """`fn` under `jax.checkpoint` when the filter is differentiated (`cfg.remat`): a branch of
-    `lax.cond` then keeps only its inputs for the backward pass. Without it, reverse mode stores
-    the residuals of *both* branches of every cond, the branch not taken as zeros of the same size:
-    the full-grid epoch's residuals (hundreds of MB at 0.5 m cells) zero-filled in every windowed
-    epoch."""
+    `lax.cond` then keeps only its inputs for the backward pass and is recomputed there, instead of
+    storing its intermediates (reverse mode of a cond stores the residuals of both branches, the
+    branch not taken as zeros). Forward-only runs are unchanged. The time the tuning gradient
+    gained came from the per-pair loop bodies (`remat` of `grid.node_loglik_sparse`,
+    `fast.ring_loglik_grid`); wrapping these branches alone changed no measured time
+    (docs/benchmarks/tuning.md)."""
     return jax.checkpoint(fn) if cfg.remat else fn
 
 
