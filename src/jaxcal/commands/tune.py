@@ -43,7 +43,7 @@ def add_arguments(p) -> None:
         "--full",
         action="store_true",
         help="gradient phase on exactly what calibrate runs (all epochs, its cell): the issue-17 default, "
-        "but about 4 min per gradient per 200 epochs of a 12-node hall at 0.5 m on a 2-core CPU",
+        "but ~30 s per step per 200 epochs of a 12-node hall at 0.5 m on a 2-core CPU",
     )
     p.add_argument("--max-steps", type=int, default=12, help="BFGS step limit (12)")
     p.add_argument(
