@@ -338,3 +338,21 @@ def test_hard_metrics_are_calibrates_run():
     ev = evaluate_mesh(res, ds)
     np.testing.assert_allclose(got["rmse_m"], ev["rmse_m"], rtol=1e-6)
     np.testing.assert_allclose(got["final_rmse_m"], ev["final_rmse_m"], rtol=1e-6)
+
+
+def test_summary_line_units_and_what_was_tuned_on():
+    """The one-line summary: the held-out range error in metres, the surrogate named."""
+    from jaxcal.commands.tune import _summary
+
+    v = {"sigma_r": 0.3, "sigma_v": 0.25, "tau": 0.9}
+    res = T.TuneResult(
+        params=v, start=v, tuned={**v, "sigma_r": 0.27}, objective="evidence", before=1.0,
+        after=0.9, hard_before={"heldout_m": 1.5, "nlpl": 2.0},
+        hard_after={"heldout_m": 1.6, "nlpl": 1.9}, accepted=False, steps=3, converged=False,
+        message="stopped at 3 steps",
+        settings={"epochs": 200, "check_epochs": 2000, "cell_m": 1.0, "check_cell_m": 0.5},
+        seconds={},
+    )
+    line = _summary(res, "evidence", "p.json")
+    assert "calibrate's heldout_m (1.5 -> 1.6 m)" in line and "nats" not in line
+    assert "gradient on 200 of 2000 epochs at 1 m cells" in line and "kept the start" in line

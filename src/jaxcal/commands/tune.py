@@ -69,7 +69,7 @@ def _summary(res, objective: str, out) -> str:
         return s
 
     k = res.hard_key
-    unit = " m" if k == "rmse_m" else " nats/range"
+    unit = " m" if k in ("rmse_m", "heldout_m") else " nats/range"
     hb, ha = res.hard_before[k], res.hard_after[k]
     st = res.settings
     on = (
