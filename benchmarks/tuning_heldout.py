@@ -103,7 +103,9 @@ def main() -> None:
               "hard_after": res.hard_after, "steps": res.steps, "message": res.message,
               "rmse_default_m": res.hard_before["rmse_m"],
               "rmse_tuned_m": (res.hard_after if res.accepted else res.hard_before)["rmse_m"],
-              "seconds": round(time.perf_counter() - t, 1)})
+              "grad_epochs": res.settings["epochs"], "grad_cell_m": res.settings["cell_m"],
+              "seconds": round(time.perf_counter() - t, 1),
+              "seconds_gradient_phase": round(res.seconds["tune"], 1)})
         for s in tests:
             ds = sim(name, s, over, a.epochs)
             d = hard_metrics(ds, fixed, config)
@@ -123,11 +125,16 @@ def main() -> None:
         r["ratio"] = ratio
         print(f"| {r['family']} | {r['role']} | {r['seed']} | {'yes' if r['accepted'] else 'no'} "
               f"| {r['rmse_default_m']:.3f} | {r['rmse_tuned_m']:.3f} | {ratio:.3f} |")
-    d = np.array([r["rmse_default_m"] for r in ev])
-    u = np.array([r["rmse_tuned_m"] for r in ev])
-    print(json.dumps({"rows": len(ev), "median_default_m": float(np.median(d)),
-                      "median_tuned_m": float(np.median(u)),
-                      "worst_ratio": float(np.max(u / d)), "best_ratio": float(np.min(u / d))}))
+    for label, sel in (("all rows", ev), ("held-out (test) rows", [r for r in ev
+                                                                 if r["role"] == "test"])):
+        if not sel:
+            continue
+        d = np.array([r["rmse_default_m"] for r in sel])
+        u = np.array([r["rmse_tuned_m"] for r in sel])
+        print(json.dumps({"rows": label, "n": len(sel), "median_default_m": float(np.median(d)),
+                          "median_tuned_m": float(np.median(u)),
+                          "worst_ratio": float(np.max(u / d)),
+                          "best_ratio": float(np.min(u / d))}))
 
 
 if __name__ == "__main__":

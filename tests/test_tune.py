@@ -179,6 +179,67 @@ def test_segmented_scan_equals_one_scan(likelihood):
     np.testing.assert_allclose(np.asarray(g3), np.asarray(g1), rtol=1e-10)
 
 
+@pytest.mark.parametrize("ring", [False, True])
+def test_remat_pair_loops_equal_the_stored_ones(ring):
+    """`remat=True` (the tuning path: each pair's factor recomputed in the backward pass) gives the
+    values and gradients of the plain loop, on `grid.node_loglik_sparse` and on the kernel-image
+    `fast.ring_loglik_grid` (its exact pairs and, for a node with scattered hypotheses, its
+    `pair_loglik` fallback)."""
+    from jaxcal.mesh import fast as F
+
+    rng = np.random.default_rng(7)
+    grid = G.Grid(n_half=6, cell_m=0.5)
+    cells = grid.cells(jnp.float64)
+    n, h = 4, 3
+    idx = rng.integers(0, cells.shape[0], (n, h))
+    idx[1] = idx[1, 0]  # node 1: one cell thrice (fits the ring block); the others scattered
+    pos = cells[idx]
+    lw = jnp.asarray(np.log(rng.dirichlet(np.ones(h), n)))
+    z = jnp.asarray(rng.uniform(0.5, 3.0, n))
+    use = jnp.asarray([True, True, False, True])
+
+    def f(sig, lw, remat):
+        s = jnp.full((n,), sig)
+        if ring:
+            ll = F.ring_loglik_grid(grid, pos, lw, s, z, use, 0.05, remat=remat)
+        else:
+            ll = G.node_loglik_sparse(cells, pos, lw, s, z, use, 0.05, remat=remat)
+        return jnp.sum(jnp.sin(ll))  # a non-trivial cotangent per cell
+
+    for remat in (False, True):
+        v, g = jax.value_and_grad(f, argnums=(0, 1))(jnp.asarray(0.4), lw, remat)
+        if not remat:
+            want = (v, g)
+    np.testing.assert_allclose(float(v), float(want[0]), rtol=1e-13)
+    for a, b in zip(g, want[1], strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-11, atol=1e-13)
+    assert float(jnp.abs(want[1][0])) > 0
+
+
+def test_window_path_gradient_matches_finite_differences():
+    """The gradient through calibrate's fast-path configuration (`likelihood="window"`: its
+    full-grid epochs by kernel images with per-pair `jax.checkpoint`, its cond branches
+    checkpointed) against central differences. (This tiny case never reaches a windowed epoch;
+    benchmarks/tuning_grad_cost.py compares torgau's gradients, mostly windowed epochs, with the
+    unpatched filter's.)"""
+    ds = make_mesh(n=6, k=7, seed=5)
+    p = PGPParams(**{**SMALL, "likelihood": "window", "window_m": 5.0, "window_small_m": 0.0})
+    prob, _ = T.make_problem(ds, p, None, "nlpl", tau_temp=0.1)
+    assert prob.cfg.window == 5
+    theta = T.theta_of(0.8, 0.7, 0.6, jnp.float64)
+    f = jax.jit(T.objective)
+    g = np.asarray(jax.jit(jax.grad(T.objective))(theta, prob))
+    h = 1e-5
+    fd = np.array(
+        [
+            (float(f(theta.at[i].add(h), prob)) - float(f(theta.at[i].add(-h), prob))) / (2 * h)
+            for i in range(theta.shape[0])
+        ]
+    )
+    assert np.all(np.isfinite(g)) and np.any(np.abs(g) > 1e-6)
+    np.testing.assert_allclose(g, fd, rtol=2e-4, atol=1e-7)
+
+
 def test_theta_round_trip_with_the_mixture_parameters():
     theta = T.theta_of(0.4, 0.2, 0.85, jnp.float64, nlos_weight=0.15, nlos_mean_m=2.5)
     v = T.values_of(theta)
@@ -238,6 +299,7 @@ def test_cli_tune_then_calibrate(tmp_path):
     assert proc.returncode == 0, proc.stderr
     line = proc.stdout.strip()
     assert "\n" not in line and "calibrate's nlpl" in line and "start sigma_r=" in line
+    assert "gradient on 6 of 6 epochs at 1 m cells" in line  # what the gradient phase ran on
     assert "tune:" in proc.stderr and "step" in proc.stderr
     res = tmp_path / "r.h5"
     proc = run_cli(
@@ -276,3 +338,21 @@ def test_hard_metrics_are_calibrates_run():
     ev = evaluate_mesh(res, ds)
     np.testing.assert_allclose(got["rmse_m"], ev["rmse_m"], rtol=1e-6)
     np.testing.assert_allclose(got["final_rmse_m"], ev["final_rmse_m"], rtol=1e-6)
+
+
+def test_summary_line_units_and_what_was_tuned_on():
+    """The one-line summary: the held-out range error in metres, the surrogate named."""
+    from jaxcal.commands.tune import _summary
+
+    v = {"sigma_r": 0.3, "sigma_v": 0.25, "tau": 0.9}
+    res = T.TuneResult(
+        params=v, start=v, tuned={**v, "sigma_r": 0.27}, objective="evidence", before=1.0,
+        after=0.9, hard_before={"heldout_m": 1.5, "nlpl": 2.0},
+        hard_after={"heldout_m": 1.6, "nlpl": 1.9}, accepted=False, steps=3, converged=False,
+        message="stopped at 3 steps",
+        settings={"epochs": 200, "check_epochs": 2000, "cell_m": 1.0, "check_cell_m": 0.5},
+        seconds={},
+    )
+    line = _summary(res, "evidence", "p.json")
+    assert "calibrate's heldout_m (1.5 -> 1.6 m)" in line and "nats" not in line
+    assert "gradient on 200 of 2000 epochs at 1 m cells" in line and "kept the start" in line

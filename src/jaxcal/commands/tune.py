@@ -43,7 +43,7 @@ def add_arguments(p) -> None:
         "--full",
         action="store_true",
         help="gradient phase on exactly what calibrate runs (all epochs, its cell): the issue-17 default, "
-        "but about 4 min per gradient per 200 epochs of a 12-node hall at 0.5 m on a 2-core CPU",
+        "but ~30 s per step per 200 epochs of a 12-node hall at 0.5 m on a 2-core CPU",
     )
     p.add_argument("--max-steps", type=int, default=12, help="BFGS step limit (12)")
     p.add_argument(
@@ -69,9 +69,14 @@ def _summary(res, objective: str, out) -> str:
         return s
 
     k = res.hard_key
-    unit = " m" if k == "rmse_m" else " nats/range"
+    unit = " m" if k in ("rmse_m", "heldout_m") else " nats/range"
     hb, ha = res.hard_before[k], res.hard_after[k]
-    head = f"tune {objective}: {res.steps} steps ({res.message}); start {fmt(res.start)}"
+    st = res.settings
+    on = (
+        f"gradient on {st['epochs']} of {st['check_epochs']} epochs at {st['cell_m']:g} m cells, "
+        f"guard on calibrate's run ({st['check_epochs']} epochs, {st['check_cell_m']:g} m)"
+    )
+    head = f"tune {objective}: {res.steps} steps ({res.message}; {on}); start {fmt(res.start)}"
     if res.accepted:
         return (
             f"{head}; tuned {fmt(res.tuned)}; calibrate's {k} {hb:.4g} -> {ha:.4g}{unit}"

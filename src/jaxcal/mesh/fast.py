@@ -282,11 +282,13 @@ def ring_loglik_grid(
     p_out: Float[Array, ""],
     nlos=None,
     span: int = RING_SPAN,
+    remat: bool = False,
 ) -> Float[Array, " cells"]:
     """`grid.node_loglik_sparse` on the whole grid, by `ring_loglik`'s kernel images: a loop over
     neighbours skipping those without a range; a pair whose image is not exact (see
     `ring_loglik`) is evaluated by `grid.pair_loglik`. Same arguments (but the grid for the cells),
-    same result up to rounding; not to be `vmap`ped (see `node_loglik_sparse`)."""
+    same result up to rounding; not to be `vmap`ped (see `node_loglik_sparse`). `remat`: as in
+    `node_loglik_sparse`."""
     n, ns = hyp_logw.shape[0], grid.n_side
     org = jnp.zeros((2,), jnp.int32)
 
@@ -305,7 +307,7 @@ def ring_loglik_grid(
 
             return acc + jax.lax.cond(ok, lambda: jnp.log(fac), direct)
 
-        return jax.lax.cond(use_i[j], add, lambda a: a, acc)
+        return jax.lax.cond(use_i[j], jax.checkpoint(add) if remat else add, lambda a: a, acc)
 
     acc = jax.lax.fori_loop(0, n, neighbour, jnp.zeros((ns, ns), hyp_logw.dtype))
     return acc.reshape(-1)

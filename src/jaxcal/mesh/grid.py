@@ -397,11 +397,16 @@ def node_loglik_sparse(
     use_i: Bool[Array, " nodes"],
     p_out: Float[Array, ""],
     nlos: tuple[Float[Array, ""], Float[Array, ""]] | None = None,
+    remat: bool = False,
 ) -> Float[Array, " cells"]:
     """`node_loglik` with the same arguments and result, skipping the work of neighbours without a
     range
     (`lax.cond` in a loop over neighbours: cost ~ used pairs x hypotheses x cells). Must not be
-    `vmap`ped (a batched `cond` evaluates both branches); map it over nodes with `lax.map`."""
+    `vmap`ped (a batched `cond` evaluates both branches); map it over nodes with `lax.map`.
+
+    `remat=True` (when differentiated: tuning) recomputes each pair's factor in the backward pass
+    instead of storing its (hypotheses x cells) intermediates for every pair of every node and
+    epoch; same values."""
     n = hyp_logw.shape[0]
 
     def neighbour(j, acc):
@@ -410,7 +415,7 @@ def node_loglik_sparse(
                 cells, hyp_pos[j], hyp_logw[j], z_i[j], hyp_sigma[j], p_out, nlos
             )
 
-        return jax.lax.cond(use_i[j], add, lambda a: a, acc)
+        return jax.lax.cond(use_i[j], jax.checkpoint(add) if remat else add, lambda a: a, acc)
 
     return jax.lax.fori_loop(0, n, neighbour, jnp.zeros(cells.shape[:1], cells.dtype))
 

@@ -354,6 +354,17 @@ def symmetric_ranges(r: np.ndarray) -> np.ndarray:
     return out
 
 
+def _remat(cfg: FilterConfig, fn):
+    """`fn` under `jax.checkpoint` when the filter is differentiated (`cfg.remat`): a branch of
+    `lax.cond` then keeps only its inputs for the backward pass and is recomputed there, instead of
+    storing its intermediates (reverse mode of a cond stores the residuals of both branches, the
+    branch not taken as zeros). Forward-only runs are unchanged. The time the tuning gradient
+    gained came from the per-pair loop bodies (`remat` of `grid.node_loglik_sparse`,
+    `fast.ring_loglik_grid`); wrapping these branches alone changed no measured time
+    (docs/benchmarks/tuning.md)."""
+    return jax.checkpoint(fn) if cfg.remat else fn
+
+
 def _localised(heard: Bool[Array, "n n"], need: Float[Array, " n"]) -> Bool[Array, " n"]:
     return jnp.sum(heard, axis=1) >= need
 
@@ -394,13 +405,16 @@ def _node_update(cfg, prm, cells, logp_i, mask_i, loc_i, hyps, z_i, use_i, step_
     """One node's epoch: motion update (if localised), eq. (11), eq. (12) posterior (C,)."""
     prior = jax.lax.cond(
         loc_i,
-        lambda lp: G.predict(lp, cells, cfg.top_k, step_m, prm.sigma_v),
+        _remat(cfg, lambda lp: G.predict(lp, cells, cfg.top_k, step_m, prm.sigma_v)),
         lambda lp: lp,
         logp_i,
     )
-    lik = G.node_loglik if cfg.likelihood == "dense" else G.node_loglik_sparse
+    if cfg.likelihood == "dense":
+        lik = G.node_loglik
+    else:
+        lik = lambda *a: G.node_loglik_sparse(*a, remat=cfg.remat)  # noqa: E731
     if cfg.window and cfg.mode == "pgp":  # the fast path's full-grid epochs: kernel images
-        lik = lambda _cells, *a: F.ring_loglik_grid(cfg.grid, *a)  # noqa: E731
+        lik = lambda _cells, *a: F.ring_loglik_grid(cfg.grid, *a, remat=cfg.remat)  # noqa: E731
     ll = lik(cells, hyps[0], hyps[1], hyps[2], z_i, use_i, prm.p_out, _nlos(cfg, prm))
     post = jnp.where(mask_i, prior + ll, -jnp.inf)
     lse = jax.nn.logsumexp(post)
@@ -479,7 +493,7 @@ def _window_epoch(
         ll, ring_ok = jax.vmap(
             F.ring_loglik, in_axes=(0, None, None, None, None, None, 0, 0, None, None)
         )(org, w, grid, hyps[0], hyps[1], hyps[2], z, use, prm.p_out, nlos)
-        ll = jax.lax.cond(jnp.all(ring_ok), lambda: ll, direct_ll)
+        ll = jax.lax.cond(jnp.all(ring_ok), lambda: ll, _remat(cfg, direct_ll))
     else:  # eq. (9): off-grid estimates
         ll = direct_ll()
 
@@ -664,7 +678,7 @@ def _scan(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st0: FilterSt
             )
             res = jax.lax.cond(
                 pre,
-                lambda: _windows_epoch(cfg, prm, inp, st, z, step_m, use0, log_cells),
+                _remat(cfg, lambda: _windows_epoch(cfg, prm, inp, st, z, step_m, use0, log_cells)),
                 lambda: skip,
             )
             ok = pre & res[6]
@@ -695,7 +709,7 @@ def _scan(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st0: FilterSt
                 return full_epoch(dataclasses.replace(st, logpost=lp_full), z, step_m)
 
             logpost, heard, ev, nf, raw, win, org, bound, row, lm = jax.lax.cond(
-                ok, take_window, take_full, st.logpost
+                ok, take_window, _remat(cfg, take_full), st.logpost
             )
             windowed = ok
         else:
