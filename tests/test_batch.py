@@ -367,7 +367,7 @@ def test_pair_covariance_equals_written_out_reference(rng):
     np.testing.assert_allclose(cov, ref, rtol=1e-6, atol=1e-12)
     np.testing.assert_allclose(cov, cov.T)
     assert np.linalg.eigvalsh(cov).min() > -1e-12 * np.abs(cov).max()
-    assert set(parts) >= {"t_I", "t_D", "t_N", "t_S"} and min(parts[k] for k in ("t_I", "t_D", "t_N", "t_S")) >= 0
+    assert min(parts[k] for k in ("t_I", "t_D", "t_N")) >= 0 and min(parts["t_S"]) >= 0
 
 
 def test_pair_covariance_marks_unfixed_coordinates_nan(rng):

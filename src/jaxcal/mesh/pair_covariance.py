@@ -51,17 +51,20 @@ def pair_spread(range_m: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray
 
 
 def variance_components(jac: np.ndarray, e: np.ndarray, w: np.ndarray, spread: np.ndarray, i: np.ndarray,
-                        j: np.ndarray, n_nodes: int, prior_prec: np.ndarray) -> tuple[np.ndarray, dict]:
+                        j: np.ndarray, n_nodes: int, prior_prec: np.ndarray,
+                        shared: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """Sigma (M, M) of the pair errors and its components (see the module docstring).
 
     Args:
         jac: (M, P) Jacobian of the pair errors (or of the model: only J^T W J and J appear) with respect
             to the P parameters; e: (M,) pair errors z - model at the estimate [m]; w: (M,) weights of the
             pairs in the estimator (> 0); spread: (M,) `pair_spread`; i, j: (M,) node indices of the pairs;
-            n_nodes: number of nodes; prior_prec: (P,) prior precisions of the parameters (0 for none).
+            n_nodes: number of nodes; prior_prec: (P,) prior precisions of the parameters (0 for none);
+            shared: (M, Q) patterns of errors shared by all pairs with one amplitude each (default: the
+            spread alone, `s`; an estimator without a range offset adds a column of ones).
 
     Returns:
-        (Sigma, {"t_I", "t_D", "t_N", "t_S", "b_hat", "b_info"}).
+        (Sigma, {"t_I", "t_D", "t_N", "t_S" (Q amplitudes^2 expected), "b_hat", "b_info"}).
     """
     m = len(e)
     a_inv = np.linalg.inv((jac.T * w) @ jac + np.diag(prior_prec))
@@ -70,26 +73,30 @@ def variance_components(jac: np.ndarray, e: np.ndarray, w: np.ndarray, spread: n
     z[np.arange(m), i] = 1.0
     z[np.arange(m), j] = 1.0
     s = np.asarray(spread, dtype=np.float64)
-    comps = [np.eye(m), np.diag(s * s), z @ z.T, np.outer(s, s)]
+    pat = s[:, None] if shared is None else np.asarray(shared, dtype=np.float64).reshape(m, -1)
+    comps = [np.eye(m), np.diag(s * s), z @ z.T] + [np.outer(c, c) for c in pat.T]
     tu = np.triu_indices(m)
     design = np.column_stack([(proj @ v @ proj.T)[tu] for v in comps])
     t = nnls(design, np.outer(e, e)[tu])[0]
     sigma0 = t[0] * comps[0] + t[1] * comps[1] + t[2] * comps[2]
-    a = proj @ s
+    a = proj @ pat  # (M, Q): what each shared pattern leaves in the residuals
     v_plus = np.linalg.pinv(proj @ sigma0 @ proj.T, rcond=1e-10, hermitian=True)
-    info = float(a @ v_plus @ a)
-    if info > 0 and np.isfinite(info):
-        b_hat = float(a @ v_plus @ e) / info
-        t_s = b_hat**2 + 1.0 / info
-    else:  # no shared pattern (every pair scatters alike, or no pair left over)
-        b_hat, t_s = float("nan"), float(t[3])
-    sigma = sigma0 + t_s * comps[3]
-    return sigma, {"t_I": float(t[0]), "t_D": float(t[1]), "t_N": float(t[2]), "t_S": float(t_s),
-                   "b_hat": b_hat, "b_info": info}
+    info = a.T @ v_plus @ a
+    lam = np.linalg.eigvalsh(info) if np.isfinite(info).all() else np.zeros(1)
+    if lam.min() > 1e-12 * max(lam.max(), 1e-300):
+        cov_b = np.linalg.inv(info)
+        b_hat = cov_b @ (a.T @ v_plus @ e)
+        amp = np.outer(b_hat, b_hat) + cov_b  # expected b b^T given the residuals (flat prior)
+    else:  # no identifiable shared pattern (every pair scatters alike, or no pair left over)
+        b_hat, amp = np.full(pat.shape[1], np.nan), np.diag(t[3:])
+    sigma = sigma0 + pat @ amp @ pat.T
+    return sigma, {"t_I": float(t[0]), "t_D": float(t[1]), "t_N": float(t[2]), "t_S": np.diag(amp).tolist(),
+                   "b_hat": np.atleast_1d(b_hat).tolist(), "b_info": np.diag(info).tolist()}
 
 
 def pair_covariance(jac: np.ndarray, e: np.ndarray, w: np.ndarray, spread: np.ndarray, i: np.ndarray,
-                    j: np.ndarray, n_nodes: int, prior_prec: np.ndarray) -> tuple[np.ndarray, dict]:
+                    j: np.ndarray, n_nodes: int, prior_prec: np.ndarray,
+                    shared: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """(P, P) covariance A^-1 J^T W Sigma W J A^-1 of the parameters under the pair-error model
     (`variance_components`; arguments as there). Symmetric positive semi-definite; NaN rows and columns
     for parameters the pairs do not fix (those in the null space of A = J^T W J + prior)."""
@@ -105,7 +112,8 @@ def pair_covariance(jac: np.ndarray, e: np.ndarray, w: np.ndarray, spread: np.nd
         if not keep.any():
             return out, {}
         jk, pk = jac[:, keep], prior_prec[keep]
-        sigma, parts = variance_components(jk, np.asarray(e, dtype=np.float64), w, spread, i, j, n_nodes, pk)
+        sigma, parts = variance_components(jk, np.asarray(e, dtype=np.float64), w, spread, i, j, n_nodes, pk,
+                                           shared)
         a_inv = np.linalg.inv((jk.T * w) @ jk + np.diag(pk))
     except (np.linalg.LinAlgError, ValueError):
         return out, {}
@@ -114,3 +122,55 @@ def pair_covariance(jac: np.ndarray, e: np.ndarray, w: np.ndarray, spread: np.nd
     root = g @ (vec * np.sqrt(np.maximum(lam, 0.0)))  # Cov = root root^T: PSD by construction
     out[np.ix_(keep, keep)] = 0.5 * (root @ root.T + (root @ root.T).T)
     return out, parts
+
+
+def position_covariance(range_m: np.ndarray, position: np.ndarray, anchors: tuple[int, int, int],
+                        offset: bool = False) -> np.ndarray:
+    """(N, D, D) covariance of a mesh estimate `position` (frame `anchors`) under per-pair systematic
+    errors, for an estimator that weighs every measured pair alike (least-squares influence), e.g. the
+    grid filter, whose posterior counts every epoch as independent. Without a fitted range offset
+    (`offset=False`) a common offset of all ranges is one more shared pattern (a column of ones) whose
+    amplitude the residuals estimate: the estimator carries its effect. NaN for nodes without a finite
+    position or that the pairs do not fix; zeros on the coordinates the frame fixes."""
+    x = np.asarray(position, dtype=np.float64)
+    n, d = x.shape
+    a0, a1, a2 = anchors
+    placed = np.isfinite(x).all(axis=1)
+    out = np.full((n, d, d), np.nan)
+    r = np.asarray(range_m, dtype=np.float64)
+    from jaxcal.mesh.batch import observations  # noqa: PLC0415 - batch imports this module
+
+    i, j, zmed, _ = observations(r, "median")
+    ok = placed[i] & placed[j]
+    i, j, zmed = i[ok], j[ok], zmed[ok]
+    if i.size == 0 or not placed[[a0, a1, a2]].all():
+        return out
+    mask = np.zeros((n, d), dtype=bool)
+    mask[placed] = True
+    mask[a0] = False
+    mask[a1, 1:] = False
+    if d == 3:
+        mask[a2, 2] = False
+    free = np.flatnonzero(mask.ravel())
+    diff = x[i] - x[j]
+    dist = np.linalg.norm(diff, axis=1)
+    u = diff / np.maximum(dist, 1e-12)[:, None]
+    full = np.zeros((i.size, n * d))
+    rows = np.arange(i.size)
+    for k in range(d):
+        full[rows, i * d + k] = u[:, k]
+        full[rows, j * d + k] = -u[:, k]
+    jac = full[:, free]
+    e = zmed - dist
+    spread = pair_spread(r, i, j)
+    if offset:
+        jac = np.column_stack([jac, np.ones(i.size)])
+        shared = spread[:, None]
+    else:
+        shared = np.column_stack([spread, np.ones(i.size)])
+    cov, _ = pair_covariance(jac, e, np.ones(i.size), spread, i, j, n, np.zeros(jac.shape[1]), shared)
+    cov_all = np.zeros((n * d, n * d))
+    cov_all[np.ix_(free, free)] = cov[:free.size, :free.size]
+    for k in np.flatnonzero(placed):
+        out[k] = cov_all[k * d:(k + 1) * d, k * d:(k + 1) * d]
+    return 0.5 * (out + np.swapaxes(out, 1, 2))
