@@ -275,7 +275,7 @@ def _pair_covariance_reference(jac, e, w, spread, i, j, n):
     """The per-pair error covariance written out entry by entry (slow): A = J^T W J; residual projection
     P = I - J A^-1 J^T W; components V_I = I, V_D = diag(s^2), V_N[k, l] = #nodes shared by pairs k, l,
     V_S = s s^T; t_I, t_D, t_N (, t_S) by non-negative least squares of r_k r_l on (P V P^T)_kl over k <= l;
-    t_S = b^2 + 1 / I_b from the generalised least-squares fit r = b P s with covariance P Sigma_0 P^T."""
+    t_S = b^2 + var(b) from the least-squares fit r = b P s, var(b) under the covariance P Sigma_0 P^T."""
     from scipy.optimize import nnls
 
     m, p = jac.shape
@@ -293,11 +293,10 @@ def _pair_covariance_reference(jac, e, w, spread, i, j, n):
             ys.append(e[k] * e[l])
     t = nnls(np.array(rows), np.array(ys))[0]
     sigma0 = t[0] * comps[0] + t[1] * comps[1] + t[2] * comps[2]
-    v_plus = np.linalg.pinv(proj @ sigma0 @ proj.T, rcond=1e-10, hermitian=True)
     pat = proj @ spread
-    info = pat @ v_plus @ pat
-    b_hat = pat @ v_plus @ e / info
-    sigma = sigma0 + (b_hat**2 + 1 / info) * comps[3]
+    b_hat = pat @ e / (pat @ pat)
+    var_b = pat @ proj @ sigma0 @ proj.T @ pat / (pat @ pat) ** 2
+    sigma = sigma0 + (b_hat**2 + var_b) * comps[3]
     infl = a_inv @ jac.T @ np.diag(w)
     return infl @ sigma @ infl.T
 

@@ -24,10 +24,13 @@ the geometry absorbs is *not* in the residuals, and E[r r^T] = M Sigma M^T accou
 t_I, t_D, t_N (and a first t_S) come from a non-negative least-squares fit of the upper triangle of
 r r^T on that of M V_c M^T (method of moments). The shared component is the one the geometry can hide
 completely (a node whose pairs all scatter moves with their common excess, and its residuals stay
-small), so its amplitude b (u = b s + ...) is estimated by generalised least squares, b_hat with
-variance 1 / I_b (I_b = a^T V^+ a, a = M s, V = M Sigma_0 M^T the other components), and t_S is the
-expected b^2 under that estimate, b_hat^2 + 1 / I_b: where the residuals cannot size the excess
-(I_b small) the covariance says so instead of assuming it is zero. No parameter is set by hand.
+small), so its amplitude b (u = b s + ...) is estimated by least squares on what the pattern leaves in the
+residuals, a = M s: b_hat = a^T r / a^T a, with variance a^T V a / (a^T a)^2 under the other components
+(V = M Sigma_0 M^T), and t_S is the expected b^2 under that estimate, b_hat^2 + var(b_hat): where the
+residuals cannot size the excess (a small: the geometry absorbs it) the covariance says so instead of
+assuming it is zero. (Generalised least squares with V^+ was tried first: where the fitted components
+leave V singular, e.g. t_I = 0 on a real mesh with centimetre-quantised spreads, 1 / (a^T V^+ a) blew up
+to covariances of tens of metres.) No parameter is set by hand.
 """
 
 from __future__ import annotations
@@ -80,18 +83,19 @@ def variance_components(jac: np.ndarray, e: np.ndarray, w: np.ndarray, spread: n
     t = nnls(design, np.outer(e, e)[tu])[0]
     sigma0 = t[0] * comps[0] + t[1] * comps[1] + t[2] * comps[2]
     a = proj @ pat  # (M, Q): what each shared pattern leaves in the residuals
-    v_plus = np.linalg.pinv(proj @ sigma0 @ proj.T, rcond=1e-10, hermitian=True)
-    info = a.T @ v_plus @ a
-    lam = np.linalg.eigvalsh(info) if np.isfinite(info).all() else np.zeros(1)
+    gram = a.T @ a
+    lam = np.linalg.eigvalsh(gram) if np.isfinite(gram).all() else np.zeros(1)
     if lam.min() > 1e-12 * max(lam.max(), 1e-300):
-        cov_b = np.linalg.inv(info)
-        b_hat = cov_b @ (a.T @ v_plus @ e)
+        ginv = np.linalg.inv(gram)
+        b_hat = ginv @ (a.T @ e)  # least squares; its covariance under the other components (sandwich)
+        cov_b = ginv @ a.T @ (proj @ sigma0 @ proj.T) @ a @ ginv
         amp = np.outer(b_hat, b_hat) + cov_b  # expected b b^T given the residuals (flat prior)
-    else:  # no identifiable shared pattern (every pair scatters alike, or no pair left over)
-        b_hat, amp = np.full(pat.shape[1], np.nan), np.diag(t[3:])
+        info = np.diag(gram)
+    else:  # a pattern that leaves nothing in the residuals (e.g. constant, with a fitted offset)
+        b_hat, amp, info = np.full(pat.shape[1], np.nan), np.diag(t[3:]), np.diag(gram)
     sigma = sigma0 + pat @ amp @ pat.T
     return sigma, {"t_I": float(t[0]), "t_D": float(t[1]), "t_N": float(t[2]), "t_S": np.diag(amp).tolist(),
-                   "b_hat": np.atleast_1d(b_hat).tolist(), "b_info": np.diag(info).tolist()}
+                   "b_hat": np.atleast_1d(b_hat).tolist(), "b_info": np.atleast_1d(info).tolist()}
 
 
 def pair_covariance(jac: np.ndarray, e: np.ndarray, w: np.ndarray, spread: np.ndarray, i: np.ndarray,
