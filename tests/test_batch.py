@@ -274,8 +274,9 @@ def test_covariance_union_contains_both(rng):
 def _pair_covariance_reference(jac, e, w, spread, i, j, n):
     """The per-pair error covariance written out entry by entry (slow): A = J^T W J; residual projection
     P = I - J A^-1 J^T W; components V_I = I, V_D = diag(s^2), V_N[k, l] = #nodes shared by pairs k, l,
-    V_S = s s^T; t_I, t_D, t_N (, t_S) by non-negative least squares of r_k r_l on (P V P^T)_kl over k <= l;
-    t_S = b^2 + var(b) from the least-squares fit r = b P s, var(b) under the covariance P Sigma_0 P^T."""
+    V_S = s s^T; t_I, t_D, t_N (, t_S) by non-negative least squares of r_k r_l on (P V P^T)_kl over k <= l,
+    each equation weighted by w_k w_l / max(w)^2; t_S = b^2 + var(b) from the least-squares fit r = b P s
+    (weights w / max(w)), var(b) under the covariance P Sigma_0 P^T."""
     from scipy.optimize import nnls
 
     m, p = jac.shape
@@ -286,16 +287,17 @@ def _pair_covariance_reference(jac, e, w, spread, i, j, n):
     proj = np.eye(m) - jac @ a_inv @ jac.T @ np.diag(w)
     shared = np.array([[len({i[k], j[k]} & {i[l], j[l]}) for l in range(m)] for k in range(m)], float)
     comps = [np.eye(m), np.diag(spread**2), shared, np.outer(spread, spread)]
+    wn = w / w.max()
     rows, ys = [], []
     for k in range(m):
         for l in range(k, m):
-            rows.append([(proj @ v @ proj.T)[k, l] for v in comps])
-            ys.append(e[k] * e[l])
+            rows.append([wn[k] * wn[l] * (proj @ v @ proj.T)[k, l] for v in comps])
+            ys.append(wn[k] * wn[l] * e[k] * e[l])
     t = nnls(np.array(rows), np.array(ys))[0]
     sigma0 = t[0] * comps[0] + t[1] * comps[1] + t[2] * comps[2]
     pat = proj @ spread
-    b_hat = pat @ e / (pat @ pat)
-    var_b = pat @ proj @ sigma0 @ proj.T @ pat / (pat @ pat) ** 2
+    b_hat = np.sum(wn * pat * e) / np.sum(wn * pat * pat)
+    var_b = (wn * pat) @ proj @ sigma0 @ proj.T @ (wn * pat) / np.sum(wn * pat * pat) ** 2
     sigma = sigma0 + (b_hat**2 + var_b) * comps[3]
     infl = a_inv @ jac.T @ np.diag(w)
     return infl @ sigma @ infl.T

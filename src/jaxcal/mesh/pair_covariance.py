@@ -22,10 +22,13 @@ the geometry absorbs is *not* in the residuals, and E[r r^T] = M Sigma M^T accou
   NLOS pair: its contributions add up instead of averaging out).
 
 t_I, t_D, t_N (and a first t_S) come from a non-negative least-squares fit of the upper triangle of
-r r^T on that of M V_c M^T (method of moments). The shared component is the one the geometry can hide
+r r^T on that of M V_c M^T (method of moments), each entry (k, l) weighted by w_k w_l / max(w)^2: a pair
+the robust fit ignores (a gross-outlier pair, metres off) neither moves the estimate nor sizes the errors
+of the others (unweighted, two such pairs of the simulated torgau hall made t_I = 1.2 m^2 and every
+node's predicted error 1-4 m for 0.1-0.3 m errors). The shared component is the one the geometry can hide
 completely (a node whose pairs all scatter moves with their common excess, and its residuals stay
-small), so its amplitude b (u = b s + ...) is estimated by least squares on what the pattern leaves in the
-residuals, a = M s: b_hat = a^T r / a^T a, with variance a^T V a / (a^T a)^2 under the other components
+small), so its amplitude b (u = b s + ...) is estimated by (the same weighted) least squares on what the pattern
+leaves in the residuals, a = M s: b_hat = a^T r / a^T a, with variance a^T V a / (a^T a)^2 under the other components
 (V = M Sigma_0 M^T), and t_S is the expected b^2 under that estimate, b_hat^2 + var(b_hat): where the
 residuals cannot size the excess (a small: the geometry absorbs it) the covariance says so instead of
 assuming it is zero. (Generalised least squares with V^+ was tried first: where the fitted components
@@ -78,17 +81,23 @@ def variance_components(jac: np.ndarray, e: np.ndarray, w: np.ndarray, spread: n
     s = np.asarray(spread, dtype=np.float64)
     pat = s[:, None] if shared is None else np.asarray(shared, dtype=np.float64).reshape(m, -1)
     comps = [np.eye(m), np.diag(s * s), z @ z.T] + [np.outer(c, c) for c in pat.T]
+    # moment equations weighted as the estimator weighs the pairs (w / max w, product over the two pairs
+    # of an entry): a pair the robust fit ignores (a gross-outlier pair, metres off) neither moves the
+    # estimate nor sizes the errors of the others
+    wn = w / np.max(w)
     tu = np.triu_indices(m)
-    design = np.column_stack([(proj @ v @ proj.T)[tu] for v in comps])
-    t = nnls(design, np.outer(e, e)[tu])[0]
+    om = (wn[:, None] * wn[None, :])[tu]
+    design = np.column_stack([(proj @ v @ proj.T)[tu] for v in comps]) * om[:, None]
+    t = nnls(design, np.outer(e, e)[tu] * om)[0]
     sigma0 = t[0] * comps[0] + t[1] * comps[1] + t[2] * comps[2]
     a = proj @ pat  # (M, Q): what each shared pattern leaves in the residuals
-    gram = a.T @ a
+    a = a * wn[:, None]  # weighted least squares, the same weights
+    gram = a.T @ (proj @ pat)
     lam = np.linalg.eigvalsh(gram) if np.isfinite(gram).all() else np.zeros(1)
     if lam.min() > 1e-12 * max(lam.max(), 1e-300):
         ginv = np.linalg.inv(gram)
         b_hat = ginv @ (a.T @ e)  # least squares; its covariance under the other components (sandwich)
-        cov_b = ginv @ a.T @ (proj @ sigma0 @ proj.T) @ a @ ginv
+        cov_b = ginv @ a.T @ (proj @ sigma0 @ proj.T) @ a @ ginv.T
         amp = np.outer(b_hat, b_hat) + cov_b  # expected b b^T given the residuals (flat prior)
         info = np.diag(gram)
     else:  # a pattern that leaves nothing in the residuals (e.g. constant, with a fitted offset)
