@@ -202,8 +202,9 @@ class BatchSolution(eqx.Module):
             decided before any sampling), or when the chains did not mix (R-hat above `RHAT_MAX` or
             undefined).
         fallback_reason: why `estimate=mean` fell back to the fit ("" when it did not).
-        model_covariance: (N, D, D) the model's own covariance before the pair-level sandwich widened it
-            (posterior sample covariance with `estimate=mean`, the Laplace covariance otherwise).
+        model_covariance: (N, D, D) the model's own covariance before the pair-level covariance
+            (`pair_covariance`) widened it (posterior sample covariance with `estimate=mean`, the Laplace
+            covariance otherwise).
     """
 
     position: np.ndarray
