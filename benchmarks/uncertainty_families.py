@@ -16,8 +16,14 @@ per method: coverage at 95 % over well-connected nodes, NEES per dof (median and
 nodes are all well connected, and over all networks), the count of confidently wrong nodes (a finite
 estimate and covariance with the truth outside its 95 % ellipse) among the weak nodes.
 
+Method `pgp-grid`: pgp's estimate with the grid posterior's own covariance (moments + cell^2 / 12, what
+`--method pgp` reported before its pair-level widening).
+
 Usage:
     python benchmarks/uncertainty_families.py [--seeds 0-23] [--methods batch,pgp,pgp+batch,batch:loss=mixture]
+        [--family nlos|los|walls4]
+
+`--family los`: the same without walls (every pair LOS); `walls4`: 14 nodes and two more walls.
 """
 
 from __future__ import annotations
@@ -31,9 +37,16 @@ import numpy as np
 from scipy.stats import chi2
 
 WALLS = (((10.0, 0.0), (10.0, 13.0)), ((20.0, 7.0), (20.0, 20.0)))
+# second families (`--family`): no walls (every pair LOS); four walls (more NLOS pairs, more nodes)
+FAMILIES = {
+    "nlos": dict(walls=WALLS, n=10),
+    "los": dict(walls=(), n=10),
+    "walls4": dict(walls=WALLS + (((0.0, 10.0), (8.0, 10.0)), ((22.0, 10.0), (30.0, 10.0))), n=14),
+}
 
 
-def network(seed: int, n: int = 10, n_epochs: int = 400, pair_offset_m: float = 0.04, lost_nlos: float = 0.5):
+def network(seed: int, n: int = 10, n_epochs: int = 400, pair_offset_m: float = 0.04, lost_nlos: float = 0.5,
+            walls=WALLS):
     """One family member: a `MeshDataset` (frame (0, 1, 2) in its configs) with per-pair offsets."""
     from jaxcal.data import MeshDataset
     from jaxcal.sim.mesh import MeshScenario, line_of_sight, simulate
@@ -45,12 +58,12 @@ def network(seed: int, n: int = 10, n_epochs: int = 400, pair_offset_m: float = 
         v1, v2 = xy[1] - xy[0], xy[2] - xy[0]
         if d[np.triu_indices(n, 1)].min() > 2.0 and abs(v1[0] * v2[1] - v1[1] * v2[0]) > 0.1 * 30 * 20:
             break
-    los = line_of_sight(xy, WALLS)
+    los = line_of_sight(xy, walls) if walls else np.ones((n, n), dtype=bool)
     iu, ju = np.triu_indices(n, 1)
     nlos = ~los[iu, ju]
     lost = nlos & (rng.random(iu.size) < lost_nlos)
     sc = MeshScenario(name=f"family-{seed}", hall=(30.0, 20.0), node_ids=tuple(f"n{k}" for k in range(n)),
-                      positions=tuple(map(tuple, xy)), walls=WALLS, n_epochs=n_epochs,
+                      positions=tuple(map(tuple, xy)), walls=tuple(walls), n_epochs=n_epochs,
                       never=tuple(zip(iu[lost].tolist(), ju[lost].tolist())), configs=(("f012", (0, 1, 2)),))
     ds = simulate(sc, seed=seed)
     off = np.zeros((n, n))
@@ -125,6 +138,11 @@ def run(method: str, ds):
 
     name, _, sets = method.partition(":")
     params = dict(kv.split("=", 1) for kv in sets.split(",") if kv)
+    if name == "pgp-grid":  # pgp's estimate with the grid posterior's own covariance (before issue #24)
+        from jaxcal.mesh.identify import mask_result
+        from jaxcal.mesh.pgp import run_pgp
+
+        return mask_result(run_pgp(ds, params, "f012", mode="pgp")[0], ds.range, warn=False)
     return calibrate(ds, name, params, "f012")
 
 
@@ -163,6 +181,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0-23")
     ap.add_argument("--methods", default="batch,pgp,pgp+batch,batch:loss=mixture")
     ap.add_argument("--pair-offset", type=float, default=0.04)
+    ap.add_argument("--family", default="nlos", choices=sorted(FAMILIES))
     args = ap.parse_args(argv)
     import logging
 
@@ -170,7 +189,7 @@ def main(argv=None) -> int:
     methods = [m for m in args.methods.split(";" if ";" in args.methods else ",") if m]
     table = {m: [] for m in methods}
     for seed in parse_seeds(args.seeds):
-        ds = network(seed, pair_offset_m=args.pair_offset)
+        ds = network(seed, pair_offset_m=args.pair_offset, **FAMILIES[args.family])
         well = rigid_nodes(ds)
         for m in methods:
             t0 = time.perf_counter()

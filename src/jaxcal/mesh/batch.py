@@ -29,10 +29,11 @@ treats every range as independent).
 
 Output frame: a0 at the origin, a1 on +x, a2 with y > 0 (CONTRACT 1.1). Covariances are computed in
 gauge-fixed coordinates of that frame, so they are exactly zero for the coordinates the frame fixes. The
-reported covariance is at least the pair-level HC3 sandwich (`_pair_sandwich`: the realised error of every
-pair counted once, whatever the number of epochs) in every direction (`covariance_union`): with
-`estimate=map` it widens the Laplace covariance `sigma^2 (J^T W J)^-1` of the all-ranges fit (W = IRLS
-weights psi(e)/e), with `estimate=mean` the posterior sample covariance.
+reported covariance is at least, in every direction (`covariance_union`), the covariance under per-pair
+systematic errors whose size is estimated from the pair residuals (`jaxcal.mesh.pair_covariance`: every
+pair counted once whatever the number of epochs, with the part of its error that the geometry absorbs
+accounted for): with `estimate=map` it widens the Laplace covariance `sigma^2 (J^T W J)^-1` of the
+all-ranges fit (W = IRLS weights psi(e)/e), with `estimate=mean` the posterior sample covariance.
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ from jaxcal.data import MeshDataset, Result
 from jaxcal.errors import JaxcalError
 from jaxcal.mesh import mds
 from jaxcal.mesh.frame import to_frame
+from jaxcal.mesh.pair_covariance import pair_covariance, pair_spread
 from jaxcal.params import as_dict, with_overrides
 from jaxcal.precision import in_float64
 
@@ -200,8 +202,9 @@ class BatchSolution(eqx.Module):
             decided before any sampling), or when the chains did not mix (R-hat above `RHAT_MAX` or
             undefined).
         fallback_reason: why `estimate=mean` fell back to the fit ("" when it did not).
-        model_covariance: (N, D, D) the model's own covariance before the pair-level sandwich widened it
-            (posterior sample covariance with `estimate=mean`, the Laplace covariance otherwise).
+        model_covariance: (N, D, D) the model's own covariance before the pair-level covariance
+            (`pair_covariance`) widened it (posterior sample covariance with `estimate=mean`, the Laplace
+            covariance otherwise).
     """
 
     position: np.ndarray
@@ -649,48 +652,24 @@ def _pair_scale(e: Array, real: Array, n_par: Array) -> Array:
 
 
 @eqx.filter_jit
-def _pair_sandwich(free: Array, template: Array, mask: Array, c: Array, b: Array, obs: Observations,
-                   nb: _Numbers) -> Array:
-    """Heteroscedasticity-robust (HC3 sandwich) covariance of the free coordinates and offsets, with the
-    *pair* as the unit.
+def _pair_jacobian(theta: Array, template: Array, mask: Array, obs: Observations, nb: _Numbers):
+    """Pair errors e = z - model (M,) at theta = (free coordinates, c, b) and their Jacobian (M, P)
+    (`pair_covariance.pair_covariance` takes it; padding rows are zero)."""
+    n_f = theta.shape[0] - 1 - template.shape[0]  # theta = (free (n_f,), c, b (m,))
+    idx = jnp.nonzero(mask.ravel(), size=n_f)[0]
 
-    Repeated ranges of one pair share its systematic error (antenna delays, static multipath, an NLOS
-    excess): averaging 400 epochs does not shrink it, so a covariance that counts every range as
-    independent is too small by about sqrt(epochs). Here each pair is one observation (its median summary,
-    `obs`, which does not depend on the fit) and the covariance is A^-1 B A^-1 with A = J^T J + prior and
-    B = sum_k (e_k / (1 - h_k))^2 J_k^T J_k: the realised error of every pair, corrected for its leverage
-    h_k (HC3; with one or two pairs per unknown, residuals are much smaller than errors). Every pair's
-    residual counts at full weight, even where the fit's robust loss discounts it: a systematic error that
-    the geometry absorbs (an NLOS excess on a node's pairs moves the node) shows only partly in the
-    residuals, and the least-squares influence is the conservative reading of what is left. On families
-    of random NLOS networks with per-pair offsets this gives NEES per dof near 1 where the robust
-    (psi-weighted) sandwich stays 2-20 (benchmarks/uncertainty_families.py).
-
-    Args:
-        free, template, mask, c, b: the fit (as for `_covariance`); obs: one observation per pair;
-        nb: numbers of the fit.
-
-    Returns:
-        (F + 1 + n, F + 1 + n) covariance.
-    """
-    f, n_b = free.shape[0], b.shape[0]
-    idx = jnp.nonzero(mask.ravel(), size=f)[0]
-    theta0 = jnp.concatenate([free, jnp.reshape(c, (1,)), b])
-
-    def errs(theta):
-        x = template.ravel().at[idx].set(theta[:f]).reshape(template.shape)
-        return _errors(_State(x, theta[f], theta[f + 1:]), obs, nb)
+    def errs(th):
+        x = template.ravel().at[idx].set(th[:n_f]).reshape(template.shape)
+        return _errors(_State(x, th[n_f], th[n_f + 1:]), obs, nb)
 
     real = obs.w > 0
-    e = jnp.where(real, errs(theta0), 0.0)
-    jac = jax.jacfwd(errs)(theta0) * real[:, None]
-    sc, sb = _prior_scales(nb)
-    prior = jnp.concatenate([jnp.zeros(f), jnp.stack([1.0 / sc**2]), jnp.full(n_b, 1.0 / sb**2)])
-    a_inv = jnp.linalg.inv(jac.T @ jac + jnp.diag(prior))
-    lev = jnp.clip(jnp.einsum("kp,pq,kq->k", jac, a_inv, jac), 0.0, 0.99)
-    meat = (jac.T * (e / (1.0 - lev)) ** 2) @ jac
-    cov = a_inv @ meat @ a_inv
-    return 0.5 * (cov + cov.T)
+    return jnp.where(real, errs(theta), 0.0), jax.jacfwd(errs)(theta) * real[:, None]
+
+
+@eqx.filter_jit
+def _range_weights(state: _State, obs: Observations, nb: _Numbers) -> Array:
+    """IRLS weight of every observation at `state` (0 for padding)."""
+    return _irls_weight(_errors(state, obs, nb), nb) * obs.w
 
 
 _LEAPFROG = 16  # leapfrog steps per HMC transition of `posterior_mean`
@@ -1071,12 +1050,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
                                state.b, obs, nb)
     cov_free = np.asarray(cov_free)
     done(1)
-    # the median summary, not the IRLS pair locations: those are weighted by their residuals at the fit,
-    # so they lean towards the fitted model and hide part of each pair's error (measured: NEES 3x larger)
-    sand = np.asarray(_pair_sandwich(jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c,
-                                     state.b, obs_med, nb))[:free.size, :free.size]
     cov_model = cov_free
-    cov_free = covariance_union(cov_free, sand)
     offset, node_b, accept, rhat = float(state.c), np.asarray(state.b), float("nan"), float("nan")
     used, reason = "map", ""
     if p.estimate == "mean":
@@ -1093,10 +1067,26 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         if rhat <= RHAT_MAX and np.isfinite(mean).all() and np.isfinite(cov_s).all():
             x_frame_sub[mask] = mean[:f]
             cov_model, offset, node_b = cov_s[:f, :f], float(mean[f]), mean[f + 1:]
-            cov_free = covariance_union(cov_model, sand)
             used = "mean"
         else:
             reason = f"the posterior chains did not mix (split R-hat {rhat:.2f}, limit {RHAT_MAX:.2f})"
+    # Per-pair systematic errors, sized from the data (`pair_covariance`), at the estimate reported: the
+    # pair medians (they do not depend on the fit), each pair weighted as the fit weighs its ranges.
+    at = _State(jnp.asarray(x_frame_sub), jnp.asarray(offset), jnp.asarray(node_b))
+    theta = jnp.concatenate([jnp.asarray(x_frame_sub[mask]), jnp.reshape(at.c, (1,)), at.b])
+    e_pair, jac_pair = (np.asarray(a) for a in _pair_jacobian(theta, jnp.asarray(x_frame_sub), jnp.asarray(mask),
+                                                               obs_med, nb))
+    w_obs = np.asarray(_range_weights(at, obs, nb))
+    oi, oj = np.asarray(obs.i), np.asarray(obs.j)
+    w_key = np.bincount(np.minimum(oi, oj) * m + np.maximum(oi, oj), weights=w_obs, minlength=m * m)
+    w_pair = w_key[mi * m + mj]  # obs_med: i < j, real rows first
+    n_real = mi.size
+    sc, sb = _prior_scales(nb)
+    prior = np.concatenate([np.zeros(free.size), [1.0 / float(sc) ** 2], np.full(m, 1.0 / float(sb) ** 2)])
+    ok = w_pair > 0
+    cov_pair, _ = pair_covariance(jac_pair[:n_real][ok], e_pair[:n_real][ok], w_pair[ok],
+                                  pair_spread(r, sub[mi[ok]], sub[mj[ok]]), mi[ok], mj[ok], m, prior)
+    cov_free = covariance_union(cov_model, cov_pair[:free.size, :free.size])
     full_idx = np.flatnonzero(mask.ravel())
 
     def per_node(cov_f):  # (F, F) over the free coordinates -> (N, D, D) blocks, NaN where undefined

@@ -1248,4 +1248,28 @@ def calibrate(
     `progress`: optional callback called with the epochs done since its last call."""
     from jaxcal.mesh.identify import mask_result
 
-    return mask_result(run_pgp(dataset, params, config, mode="pgp", progress=progress)[0], dataset.range)
+    res = run_pgp(dataset, params, config, mode="pgp", progress=progress)[0]
+    return mask_result(with_pair_covariance(res, dataset.range), dataset.range)
+
+
+def with_pair_covariance(res: Result, range_m: np.ndarray) -> Result:
+    """`res` with each node's covariance widened, in every direction, to at least its covariance under
+    per-pair systematic errors sized from the data (`pair_covariance.position_covariance`, least-squares
+    influence, the unmodelled common range offset as one more shared error).
+
+    The grid posterior multiplies the likelihoods of every epoch as if the ranges were independent, so
+    it narrows with the number of epochs; a pair's offset (antenna delays, static multipath, an NLOS
+    excess) is the same at every epoch and does not average out. Nodes the pairs do not fix keep the
+    grid covariance (`identify.mask_result` decides what is reported)."""
+    from jaxcal.mesh.batch import covariance_union
+    from jaxcal.mesh.pair_covariance import position_covariance
+
+    anchors = res.frame_anchors()
+    if res.covariance is None or anchors is None or res.position.shape[1] != 2:
+        return res
+    pc = position_covariance(range_m, res.position, anchors, offset=False)
+    cov = np.array(res.covariance, dtype=np.float64, copy=True)
+    for k in range(cov.shape[0]):
+        if np.isfinite(pc[k]).all() and np.isfinite(cov[k]).all():
+            cov[k] = covariance_union(cov[k], pc[k])
+    return eqx.tree_at(lambda r: r.covariance, res, cov)
