@@ -26,10 +26,10 @@ from jaxcal.methods import calibrate
 CONFIGS = [
     ("ls", {}),
     ("nls", {}),
-    ("gp", {"target": "range", "nu": 1.5}),
-    ("gp", {"target": "inv-log", "nu": 5.0 / 3.0}),
-    ("gp", {"mean": "anchor"}),
-    ("gp", {"search": "gradient"}),
+    ("gp", {}),  # the default since issue #19: mean=anchor, nls-seeded and bounded
+    ("gp", {"mean": "constant", "target": "range", "nu": 1.5}),
+    ("gp", {"mean": "constant", "target": "inv-log", "nu": 5.0 / 3.0}),
+    ("gp", {"mean": "constant", "search": "gradient"}),
 ]
 
 

@@ -237,7 +237,7 @@ def test_gradient_search_finds_anchor_outside_covered_region():
     ds = trolley(noise=0.02)
     errs = {}
     for search in ("cuboid", "gradient"):
-        res = gp.calibrate(ds, {"n_train": 100, "search": search})
+        res = gp.calibrate(ds, {"n_train": 100, "mean": "constant", "search": search})
         errs[search] = np.linalg.norm(res.position - ds.anchor_truth, axis=1)
     assert errs["gradient"][0] < 0.3, errs  # anchor above the covered floor
     assert errs["gradient"][1] < 1.0, errs  # anchor 6 m outside it

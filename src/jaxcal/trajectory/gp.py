@@ -55,20 +55,14 @@ GP's posterior variance of the range at the estimate times the identity (for `in
 metres by the derivative of the inverse transform): a cone of slope 1 shifted by one posterior
 standard deviation moves its apex by about as much.
 
-Parametric mean (`mean="anchor"`): the constant-mean GP above has no notion of where the anchor is;
-the cuboid search minimises the GP's extrapolation when the anchor lies outside the region the tag
-covers, and the height is barely observable from near-planar trajectories. With `mean="anchor"` the
-GP
-models T(r) = T(|p - a| + b) + f(p): the anchor a and the bias b are mean parameters fitted jointly
-with the kernel hyperparameters by maximising the marginal likelihood (`fit_mean_model`, Optimistix
-BFGS, initialised from `nls` on all ranges), and f absorbs spatially correlated range errors (NLOS
-bias along stretches of the route). The estimate is a; its covariance is the anchor block of the
-inverse Hessian of the negative log marginal likelihood (eigenvalues taken in absolute value and
-floored, so a flat or saddle direction gives a large variance, never a negative one). One stage, the
-same stratified subsample; no cuboid search. Guard: a smooth f can absorb the geometry and let the
-anchor run away (one hymn anchor did); an anchor whose robust range-residual spread over all its
-ranges (`cone_spread`) exceeds `max_spread_ratio` times that of the nls start falls back to nls
-(`info_fallback_nls` in the result's params says which).
+Parametric mean (`mean="anchor"`, the default; `jaxcal.trajectory.gp_anchor`): the constant-mean
+GP above has no notion of where the anchor is: the cuboid search minimises the GP's extrapolation
+when the anchor lies outside the region the tag covers, and the height is barely observable from
+near-planar trajectories (mean anchor errors of 4-8 m on the real recordings). The default GP
+models r = |p - a| + b + f(p) + e with the anchor a as a mean parameter, seeded and bounded by
+`nls`, with a heavy-tailed (Cauchy-weighted) white noise e, on a stratified subsample (or, with
+`block`, every range under a block-diagonal covariance over stretches of consecutive ranges); see
+that module. `mean="constant"` keeps the paper's GP and its searches.
 
 tinygp is not used: it would add a dependency for a dense GP with one kernel, and its Matern kernels
 are the half-integer ones only (no nu = 5/3).
@@ -117,9 +111,9 @@ class GPParams(TrajectoryParams):
 
     Attributes:
         target: `range` (paper text) or `inv-log` (public code: 1 / log10(sqrt(r) + 1)).
-        mean: `constant` (the paper: sample mean of the ranges, zero for `inv-log`, then the cuboid
-            search) or `anchor` (parametric mean |p - a| + b fitted jointly with the kernel by the
-            marginal likelihood, initialised from `nls`; the anchor is a, no search).
+        mean: `anchor` (default: parametric mean |p - a| + b fitted jointly with the kernel by the
+            marginal likelihood, seeded and bounded by `nls`; `gp_anchor`) or `constant` (the
+            paper: sample mean of the ranges, zero for `inv-log`, then the cuboid search).
         nu: Matern smoothness (1.5 as in the paper; 5/3 as in the public code).
         n_train: training ranges per anchor (stratified subsample by range); n_bins: range strata.
         seed: subsampling seed.
@@ -140,12 +134,21 @@ class GPParams(TrajectoryParams):
             for an anchor whose fitted position explains all its ranges clearly worse than the
             start: robust spread of r - |p - a| (`cone_spread`) above this many times nls's
             (0 = never; the fit diverged when f absorbed the geometry).
+        max_shift_sigma: `mean=anchor` only: the anchor moves at most this many standard deviations
+            (Mahalanobis, `nls` covariance) from the `nls` start (0 = unbounded).
+        robust: `mean=anchor` only: heavy-tailed white noise (variance / Cauchy weight of the `nls`
+            residual) so that outliers do not bend the GP.
+        combine: `mean=anchor` only: `fuse` (the GP's anchor and the `nls` answer averaged with
+            their precisions, then bounded) or `bound` (the GP's anchor, bounded).
+        block, max_ranges: `mean=anchor` only: the GP's covariance is block-diagonal over blocks
+            of `block` consecutive ranges, on at most `max_ranges` ranges per anchor (evenly thinned
+            in time); `block=0` (default): one dense GP on the stratified `n_train` subsample.
         min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s: as for `ls`, and so are
             max_gap_s, time_offset_s, estimate_offset, max_offset_s.
     """
 
     target: str = "range"
-    mean: str = "constant"
+    mean: str = "anchor"
     nu: float = 1.5
     n_train: int = 300
     n_bins: int = 10
@@ -160,6 +163,11 @@ class GPParams(TrajectoryParams):
     stages: int = 2
     search: str = "cuboid"
     max_spread_ratio: float = 3.0
+    max_shift_sigma: float = 3.0
+    robust: bool = True
+    combine: str = "fuse"
+    block: int = 0
+    max_ranges: int = 4096
 
 
 # ---------------------------------------------------------------------------------------- kernel
@@ -222,6 +230,12 @@ def _sqdist(a, b):
     return jnp.sum((a[:, None, :] - b[None, :, :]) ** 2, axis=-1)
 
 
+def _cone(x, anchor):
+    d2 = jnp.sum((x - anchor) ** 2, axis=-1)
+    safe = jnp.where(d2 > 0, d2, 1.0)
+    return jnp.where(d2 > 0, jnp.sqrt(safe), 0.0)
+
+
 # ------------------------------------------------------------------------------------ likelihood
 
 
@@ -238,14 +252,13 @@ class Hyper(eqx.Module):
     log_noise: Float[Array, ...]
 
 
-def _gram(h: Hyper, x, mask, nu, jitter):
+def _gram(h: Hyper, x, mask, nu, jitter, noise_scale=None):
     m = mask.astype(x.dtype)
     var = jnp.exp(h.log_variance)
     k = matern(_sqdist(x, x), jnp.exp(h.log_length), var, nu)
     k = k * m[:, None] * m[None, :]
-    diag = (jnp.exp(h.log_noise) + jitter * var) * m + (
-        1.0 - m
-    )  # padding: unit diagonal, no coupling
+    noise = jnp.exp(h.log_noise) * (1.0 if noise_scale is None else noise_scale)
+    diag = (noise + jitter * var) * m + (1.0 - m)  # padding: unit diagonal, no coupling
     return k + jnp.diag(diag)
 
 
@@ -256,14 +269,16 @@ def neg_log_marginal_likelihood(
     mask: Bool[Array, " n"],
     nu: float = 1.5,
     jitter: float = 1e-6,
+    noise_scale: Float[Array, " n"] | None = None,
 ) -> Float[Array, ""]:
     """-log p(y | x, h): zero-mean GP, Matern + white noise; padded entries (mask False) ignored.
 
     Args:
         h: hyperparameters. x: (n, 3) inputs [m]. y: (n,) centred targets. mask: (n,) valid entries.
         nu: Matern smoothness (static). jitter: diagonal jitter relative to the signal variance.
+        noise_scale: (n,) multiplies the white-noise variance per entry (None: 1 everywhere).
     """
-    k = _gram(h, x, mask, nu, jitter)
+    k = _gram(h, x, mask, nu, jitter, noise_scale)
     chol = jnp.linalg.cholesky(k)
     yy = jnp.where(mask, y, 0.0)
     alpha = jax.scipy.linalg.cho_solve((chol, True), yy)
@@ -492,100 +507,6 @@ def stratified_subsample(rng_m: np.ndarray, n_train: int, n_bins: int, seed: int
     return np.sort(np.concatenate([chosen, extra]))
 
 
-# ----------------------------------------------------------------------------- parametric mean
-
-
-class MeanModel(eqx.Module):
-    """GP with the range model as its mean: y(p) = T(|p - a| + b) + f(p), f ~ GP(0, Matern + noise).
-
-    Attributes:
-        anchor: (3,) anchor position a [m] (in the frame of the inputs). bias: range bias b [m].
-        hyper: kernel and noise hyperparameters (log space).
-    """
-
-    anchor: Float[Array, ...]
-    bias: Float[Array, ...]
-    hyper: Hyper
-
-
-def _cone(x, anchor):
-    d2 = jnp.sum((x - anchor) ** 2, axis=-1)
-    safe = jnp.where(d2 > 0, d2, 1.0)
-    return jnp.where(d2 > 0, jnp.sqrt(safe), 0.0)
-
-
-def mean_model_nlml(
-    theta: MeanModel,
-    x: Float[Array, "n 3"],
-    r: Float[Array, " n"],
-    mask: Bool[Array, " n"],
-    nu: float = 1.5,
-    jitter: float = 1e-6,
-    target: str = "range",
-) -> Float[Array, ""]:
-    """-log p(r | x, theta) of the GP with the parametric mean T(|p - a| + b) (T = `to_target`).
-
-    Args:
-        theta: mean parameters and hyperparameters. x: (n, 3) tag positions [m]. r: (n,) ranges [m].
-        mask: (n,) valid entries. nu: Matern smoothness (static). jitter: relative diagonal jitter.
-        target: `range` or `inv-log` (the GP models T(r)).
-    """
-    m = to_target(_cone(x, theta.anchor) + theta.bias, target)
-    y = jnp.where(mask, to_target(jnp.where(mask, r, 1.0), target) - m, 0.0)
-    return neg_log_marginal_likelihood(theta.hyper, x, y, mask, nu, jitter)
-
-
-def fit_mean_model(x, r, mask, init: MeanModel, nu=1.5, jitter=1e-6, max_steps=200, target="range"):
-    """Maximise the marginal likelihood over anchor, bias and log hyperparameters (optx BFGS).
-
-    Returns:
-        (fitted MeanModel, covariance (3, 3) of the anchor from the inverse Hessian of the NLML).
-    """
-    n = jnp.maximum(jnp.sum(mask), 1)
-
-    def loss(th, _):
-        return mean_model_nlml(th, x, r, mask, nu, jitter, target) / n
-
-    sol = optx.minimise(
-        loss, optx.BFGS(rtol=1e-7, atol=1e-7), init, max_steps=max_steps, throw=False
-    )
-    ok = jnp.isfinite(loss(sol.value, None))
-    th = jax.tree.map(lambda a, b: jnp.where(ok, a, b), sol.value, init)
-    flat, unravel = jax.flatten_util.ravel_pytree(th)
-    hess = jax.hessian(lambda v: mean_model_nlml(unravel(v), x, r, mask, nu, jitter, target))(flat)
-    hess = 0.5 * (hess + hess.T)
-    w, v = jnp.linalg.eigh(hess)
-    # A saddle or flat direction (not a minimum) gets a large, not a negative, variance.
-    w = jnp.maximum(jnp.abs(w), 1e-10 * jnp.max(jnp.abs(w)))
-    cov = (v / w) @ v.T
-    return th, cov[:3, :3]
-
-
-@eqx.filter_jit
-def _calibrate_mean(x, r, mask, init_anchor, init_bias, p: GPParams):
-    def one(x, r, m, a0, b0):
-        w = m.astype(x.dtype)
-        n = jnp.maximum(jnp.sum(w), 1.0)
-        origin = jnp.sum(x * w[:, None], axis=0) / n
-        xc = (x - origin) * w[:, None]
-        a0 = a0 - origin
-        y = to_target(jnp.where(m, r, 1.0), p.target)
-        res = jnp.where(m, y - to_target(_cone(xc, a0) + b0, p.target), 0.0)
-        var_y = jnp.maximum(jnp.sum(res**2) / n, 1e-6)
-        ext = jnp.max(jnp.where(m[:, None], jnp.abs(xc), 0.0))
-        init = MeanModel(
-            a0,
-            b0,
-            Hyper(
-                jnp.log(jnp.maximum(0.1 * ext, 1e-2)), jnp.log(0.5 * var_y), jnp.log(0.5 * var_y)
-            ),
-        )
-        th, cov = fit_mean_model(xc, r, m, init, p.nu, p.jitter, p.max_steps, p.target)
-        return th.anchor + origin, cov, th.hyper, th.bias
-
-    return jax.lax.map(lambda a: one(*a), (x, r, mask, init_anchor, init_bias))
-
-
 # ------------------------------------------------------------------------------------ calibrate
 
 
@@ -683,7 +604,9 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
         ]
     )
     if p.mean == "anchor":
-        out = _calibrate_anchor_mean(dataset, p, groups, info, n, planar)
+        from jaxcal.trajectory.gp_anchor import calibrate_anchor_mean
+
+        out = calibrate_anchor_mean(dataset, p, groups, info, n, planar)
         if progress is not None:
             progress(1)
         return out
@@ -745,77 +668,10 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
     return finish(dataset, "gp", p, kept, est, cov, info)
 
 
-def cone_spread(pos, rng_m, mask, anchor) -> np.ndarray:
-    """Robust spread of the range residuals e = r - |p - a| per anchor, median |e - median(e)| [m]
-    (a constant range bias costs nothing); NaN for an anchor without ranges or estimate.
-
-    Args:
-        pos: (A, n, 3) tag positions [m]. rng_m: (A, n) ranges [m]. mask: (A, n) valid.
-        anchor: (A, 3) anchor positions [m].
-    """
-    pos, rng_m, mask, anchor = map(np.asarray, (pos, rng_m, mask, anchor))
-    out = np.full(pos.shape[0], np.nan)
-    for a in range(pos.shape[0]):
-        if mask[a].any() and np.isfinite(anchor[a]).all():
-            e = rng_m[a, mask[a]] - np.linalg.norm(pos[a, mask[a]] - anchor[a], axis=1)
-            out[a] = np.median(np.abs(e - np.median(e)))
-    return out
-
-
-def _calibrate_anchor_mean(dataset, p: GPParams, groups, info, n: int, planar) -> Result:
-    """`mean=anchor`: `nls` on all ranges to start, then the mean-model GP on a stratified set."""
-    from jaxcal.trajectory import nls
-    from jaxcal.trajectory.poses import AnchorRanges
-
-    shared = {k: getattr(p, k) for k in ("min_ranges", "planar_tol_m", "planar_ratio", "side")}
-    a0, cov0, b0 = nls._solve_all(
-        groups.position, groups.range, groups.mask, with_overrides(nls.NLSParams(), shared)
-    )
-    pos = np.asarray(groups.position)
-    rng_m = np.asarray(groups.range)
-    mask = np.asarray(groups.mask)
-    a_n = pos.shape[0]
-    x = np.zeros((a_n, n, 3))
-    r = np.ones((a_n, n))
-    m = np.zeros((a_n, n), dtype=bool)
-    a0 = np.array(a0, dtype=float)
-    b0 = np.array(b0, dtype=float)
-    for a in range(a_n):
-        valid = np.nonzero(mask[a])[0]
-        if valid.size == 0:
-            continue
-        sel = valid[stratified_subsample(rng_m[a, valid], n, p.n_bins, p.seed + a)]
-        x[a, : sel.size], r[a, : sel.size], m[a, : sel.size] = pos[a, sel], rng_m[a, sel], True
-        if not np.isfinite(a0[a]).all():
-            a0[a] = pos[a, sel].mean(axis=0)
-            b0[a] = 0.0
-    a_nls = a0.copy()
-    est, cov, hyp, bias = _calibrate_mean(
-        jnp.asarray(x), jnp.asarray(r), jnp.asarray(m), jnp.asarray(a0), jnp.asarray(b0), p
-    )
-    est, cov, bias = np.array(est), np.array(cov), np.array(bias)
-    spread_gp = cone_spread(pos, rng_m, mask, est)
-    spread_nls = cone_spread(pos, rng_m, mask, a_nls)
-    # Guard: f can absorb the geometry (a far anchor's cone is nearly a plane, and a smooth f
-    # trades off against it), letting the anchor run away; such an anchor no longer explains the
-    # ranges geometrically. Fall back to the nls start when it is clearly worse at that.
-    fallback = np.isfinite(a_nls).all(axis=1) & (
-        ~np.isfinite(est).all(axis=1)
-        | ((p.max_spread_ratio > 0) & (spread_gp > p.max_spread_ratio * spread_nls))
-    )
-    est[fallback] = a_nls[fallback]
-    cov[fallback] = np.asarray(cov0)[fallback]
-    bias[fallback] = np.asarray(b0)[fallback]
-    info = dict(
-        info,
-        fallback_nls=fallback.tolist(),
-        cone_spread_m=spread_gp.tolist(),
-        nls_cone_spread_m=spread_nls.tolist(),
-        planar=planar.tolist(),
-        bias_m=np.asarray(bias).tolist(),
-        length_m=np.exp(np.asarray(hyp.log_length)).tolist(),
-        signal_var=np.exp(np.asarray(hyp.log_variance)).tolist(),
-        noise_var=np.exp(np.asarray(hyp.log_noise)).tolist(),
-    )
-    kept = AnchorRanges(groups.position, groups.range, groups.mask)
-    return finish(dataset, "gp", p, kept, est, cov, info)
+# The mean-model GP lives in its own module; its public names stay importable from here.
+from jaxcal.trajectory.gp_anchor import (  # noqa: E402
+    MeanModel,
+    cone_spread,
+    fit_mean_model,
+    mean_model_nlml,
+)

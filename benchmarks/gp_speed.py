@@ -1,0 +1,56 @@
+"""Issue #19 item 3: `gp` run time on 10 anchors x ~1e5 ranges, and accuracy against the training-set
+size (JSON lines).
+
+    python benchmarks/gp_speed.py [--rate 150] [--n 100 300 1000] [--seed 0] [--block 0]
+
+The simulated campus (10 anchors, NLOS behind buildings) ranged at `--rate` Hz per anchor (150 Hz:
+about 1e5 ranges). Per n_train: `gp` cold (JIT compilation included) and warm seconds, mean anchor
+error; `nls` alone for reference. On a shared CPU set
+XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1".
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import numpy as np
+
+from jaxcal.methods import calibrate
+from jaxcal.sim.trajectory import simulate
+
+
+def timed(ds, method, params):
+    t0 = time.perf_counter()
+    res = calibrate(ds, method, params)
+    t1 = time.perf_counter()
+    calibrate(ds, method, params)
+    t2 = time.perf_counter()
+    e = res.position - ds.anchor_truth
+    ok = np.isfinite(e).all(axis=1)
+    return res, round(t1 - t0, 2), round(t2 - t1, 2), float(np.linalg.norm(e[ok], axis=1).mean())
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--rate", type=float, default=150.0)
+    ap.add_argument("--n", nargs="*", type=int, default=[100, 300, 1000])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--block", type=int, default=0)
+    a = ap.parse_args()
+    ds = simulate("campus", seed=a.seed, range_rate_hz=a.rate)
+    base = {"dataset": f"campus seed={a.seed} rate={a.rate:g}", "ranges": int(ds.range.size)}
+    _, cold, warm, err = timed(ds, "nls", {})
+    print(json.dumps({**base, "method": "nls", "cold_s": cold, "warm_s": warm, "mean_error_m": err,
+                      "load1": round(os.getloadavg()[0], 2)}), flush=True)
+    for n in a.n:
+        p = {"n_train": n, "block": a.block}
+        _, cold, warm, err = timed(ds, "gp", p)
+        print(json.dumps({**base, "method": "gp", **p, "cold_s": cold, "warm_s": warm,
+                          "mean_error_m": err, "load1": round(os.getloadavg()[0], 2)}), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,125 @@
+"""The nls-seeded, bounded mean-model GP (`gp` default, `jaxcal.trajectory.gp_anchor`): its pieces
+against direct NumPy / SciPy references, on 20 random draws where draws matter."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.stats import multivariate_normal
+
+from jaxcal.trajectory import gp, gp_anchor
+from tests.test_gp import _matern_ref, drone
+
+SEEDS = range(20)
+
+
+def _spd(gen, scale=1.0):
+    m = gen.normal(size=(3, 3))
+    return scale * (m @ m.T + 0.1 * np.eye(3))
+
+
+def _theta():
+    hyper = gp.Hyper(jnp.log(1.2), jnp.log(0.3), jnp.log(0.05))
+    return gp_anchor.MeanModel(jnp.array([0.3, -0.2, 1.5]), jnp.array(0.1), hyper)
+
+
+def test_nlml_with_per_point_noise_equals_dense_scipy():
+    gen = np.random.default_rng(1)
+    n, pad = 15, 3
+    x = gen.uniform(-3, 3, (n + pad, 3))
+    r = gen.uniform(1.0, 6.0, n + pad)
+    s = gen.uniform(1.0, 20.0, n + pad)
+    mask = np.arange(n + pad) < n
+    th = _theta()
+    args = (jnp.asarray(x), jnp.asarray(r), jnp.asarray(mask), 1.5, 1e-6, "range", jnp.asarray(s))
+    got = float(gp_anchor.mean_model_nlml(th, *args))
+    xv, rv = x[:n], r[:n]
+    d = np.linalg.norm(xv[:, None] - xv[None], axis=-1)
+    k = _matern_ref(d, 1.2, 0.3, 1.5) + np.diag(0.05 * s[:n] + 1e-6 * 0.3)
+    mean = np.linalg.norm(xv - np.asarray(th.anchor), axis=1) + 0.1
+    assert got == pytest.approx(-multivariate_normal(mean=mean, cov=k).logpdf(rv), rel=1e-9)
+
+
+def test_blocks_nlml_equals_dense_block_diagonal_scipy():
+    """Blocks of consecutive ranges, independent: the log density of one Gaussian whose covariance
+    is block-diagonal (a partly filled and an empty block included)."""
+    gen = np.random.default_rng(2)
+    n_blk, m = 3, 6
+    x = gen.uniform(-3, 3, (n_blk, m, 3))
+    r = gen.uniform(1.0, 6.0, (n_blk, m))
+    s = gen.uniform(1.0, 5.0, (n_blk, m))
+    mask = np.ones((n_blk, m), bool)
+    mask[1, 4:] = False
+    mask[2] = False
+    th = _theta()
+    got = float(
+        gp_anchor.blocks_nlml(
+            th, *(jnp.asarray(v) for v in (x, r, mask)), 1.5, 1e-6, "range", jnp.asarray(s)
+        )
+    )
+    ref = 0.0
+    for b in range(n_blk):
+        k = mask[b]
+        if not k.any():
+            continue
+        xv, rv, sv = x[b, k], r[b, k], s[b, k]
+        d = np.linalg.norm(xv[:, None] - xv[None], axis=-1)
+        cov = _matern_ref(d, 1.2, 0.3, 1.5) + np.diag(0.05 * sv + 1e-6 * 0.3)
+        mean = np.linalg.norm(xv - np.asarray(th.anchor), axis=1) + 0.1
+        ref -= multivariate_normal(mean=mean, cov=cov).logpdf(rv)
+    assert got == pytest.approx(ref, rel=1e-9)
+
+
+def test_cauchy_weights_formula():
+    e = np.array([0.0, 0.1, -0.2, 3.0, 0.05])
+    c = 2.385 * 1.4826 * np.median(np.abs(e))
+    np.testing.assert_allclose(gp_anchor.cauchy_weights(e), 1 / (1 + (e / c) ** 2))
+    # the scale never drops below its floor
+    np.testing.assert_allclose(gp_anchor.cauchy_weights(np.zeros(3) + 1e-9), 1.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_bound_step_stays_in_the_ellipsoid_along_the_step(seed):
+    gen = np.random.default_rng(seed)
+    a0, cov0, a = gen.normal(size=3), _spd(gen, 0.1), gen.normal(size=3) * 3
+    k = 2.0
+    b = gp_anchor.bound_step(a0, cov0, a, k)
+    maha = lambda v: float(np.sqrt((v - a0) @ np.linalg.solve(cov0, v - a0)))  # noqa: E731
+    assert maha(b) <= k + 1e-9
+    if maha(a) <= k:
+        np.testing.assert_allclose(b, a)
+    else:
+        assert maha(b) == pytest.approx(k)
+        np.testing.assert_allclose(np.cross(b - a0, a - a0), 0.0, atol=1e-9)  # same direction
+    np.testing.assert_allclose(gp_anchor.bound_step(a0, cov0, a, 0.0), a)  # 0 = unbounded
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_widen_covariance_dominates_both(seed):
+    gen = np.random.default_rng(100 + seed)
+    c, f = _spd(gen), _spd(gen)
+    w = gp_anchor.widen_covariance(c, f)
+    assert np.linalg.eigvalsh(w - c).min() > -1e-9
+    assert np.linalg.eigvalsh(w - f).min() > -1e-9
+    np.testing.assert_allclose(gp_anchor.widen_covariance(c, 0.5 * c), c, atol=1e-12)
+
+
+def test_fuse_equals_scalar_precision_weighting():
+    a0, a1 = np.array([0.0, 1.0, 2.0]), np.array([1.0, 3.0, 2.0])
+    c0, c1 = np.diag([1.0, 4.0, 1.0]), np.diag([3.0, 4.0, 1.0])
+    np.testing.assert_allclose(gp_anchor.fuse(a0, c0, a1, c1), [0.25, 2.0, 2.0])
+
+
+def test_default_gp_is_bounded_by_nls_and_no_more_confident():
+    """The default gp: within max_shift_sigma of nls (Mahalanobis under nls's covariance), and its
+    covariance at least nls's in every direction."""
+    from jaxcal.trajectory import nls
+
+    ds = drone(noise=0.05)
+    res = gp.calibrate(ds, {"n_train": 60})
+    ref = nls.calibrate(ds)
+    assert res.params["mean"] == "anchor"
+    for a in range(2):
+        d = res.position[a] - ref.position[a]
+        bound = res.params["max_shift_sigma"] ** 2 + 1e-6
+        assert d @ np.linalg.solve(ref.covariance[a], d) <= bound
+        assert np.linalg.eigvalsh(res.covariance[a] - ref.covariance[a]).min() > -1e-9
