@@ -153,6 +153,43 @@ def test_guard_keeps_the_start_when_calibrate_does_worse(monkeypatch):
     assert res.params["sigma_r"] == pytest.approx(SMALL["sigma_r"])
 
 
+def test_paired_gain_t_equals_scipy_paired_t_test(rng):
+    from scipy import stats
+
+    before = rng.uniform(0.2, 1.0, 30)
+    after = before - rng.normal(0.01, 0.05, 30)
+    after[[3, 7]] = np.nan  # pairs without an estimate in one run are left out
+    ok = np.isfinite(after)
+    want = stats.ttest_rel(before[ok], after[ok]).statistic
+    assert E.paired_gain_t(before, after) == pytest.approx(want, rel=1e-12)
+    assert np.isnan(E.paired_gain_t(before[:1], after[:1]))
+    assert E.paired_gain_t(np.ones(4), np.zeros(4)) == np.inf
+
+
+@pytest.mark.parametrize("gain, accepted", [(0.001, False), (0.2, True)])
+def test_held_out_guard_needs_a_gain_beyond_the_pairs_scatter(monkeypatch, rng, gain, accepted):
+    """The tuned values lower the mean held-out error in both cases; a gain far inside the pairs'
+    scatter (t < 1) keeps the start, a clear one (t >> 1) is written."""
+    ds = make_mesh(n=7, k=6, seed=3)
+    base = rng.uniform(0.1, 0.5, 12)
+    noise = rng.normal(0.0, 0.05, 12)
+    noise -= noise.mean()  # the mean gain is exactly `gain`; its scatter is the noise's
+
+    def pair_errors(dataset, params, config, *a, **k):
+        moved = float(np.asarray(params.sigma_r)) != pytest.approx(SMALL["sigma_r"])
+        return base - (gain + noise if moved else 0.0)
+
+    monkeypatch.setattr(E, "heldout_pair_errors", pair_errors)
+    monkeypatch.setattr(T, "_bfgs", lambda theta0, prob, *a, **k: (theta0.at[0].add(0.1), 1, True, "ok"))
+    monkeypatch.setattr(T, "_value", lambda theta, prob: jnp.where(theta[0] > np.log(0.85), 0.5, 1.0))
+    res = T.tune(ds, SMALL, None, objective_name="evidence", tau_temp=0.1)
+    assert res.hard_key == "heldout_m"
+    assert res.hard_after["heldout_m"] < res.hard_before["heldout_m"]
+    t = res.settings["guard_gain_t"]
+    assert (t > T.GUARD_T) == accepted and res.accepted == accepted
+    assert res.params == (res.tuned if accepted else res.start)
+
+
 @pytest.mark.parametrize("likelihood", ["dense", "window"])
 def test_segmented_scan_equals_one_scan(likelihood):
     """Checkpointed segments (7 epochs as 3 + 3 + a tail of 1) = the one-scan filter: values (also
@@ -356,3 +393,9 @@ def test_summary_line_units_and_what_was_tuned_on():
     line = _summary(res, "evidence", "p.json")
     assert "calibrate's heldout_m (1.5 -> 1.6 m)" in line and "nats" not in line
     assert "gradient on 200 of 2000 epochs at 1 m cells" in line and "kept the start" in line
+    # better on average but within the held-out pairs' scatter: said so, start kept
+    noisy = T.TuneResult(**{**{f: getattr(res, f) for f in res.__dataclass_fields__},
+                            "hard_after": {"heldout_m": 1.4999, "nlpl": 1.9},
+                            "settings": {**res.settings, "guard_gain_t": 0.3, "guard_t_min": 1.0}})
+    line = _summary(noisy, "evidence", "p.json")
+    assert "within the held-out pairs' scatter (t = 0.30 <= 1)" in line and "kept the start" in line

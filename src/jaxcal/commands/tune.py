@@ -82,6 +82,13 @@ def _summary(res, objective: str, out) -> str:
             f"{head}; tuned {fmt(res.tuned)}; calibrate's {k} {hb:.4g} -> {ha:.4g}{unit}"
             f" (better: tuned values written) -> {out}"
         )
+    t = st.get("guard_gain_t", float("nan"))
+    if k == "heldout_m" and ha < hb and t == t:  # better on average, but within the pairs' scatter
+        return (
+            f"{head}; tuned {fmt(res.tuned)}: calibrate's {k} {hb:.4g} -> {ha:.4g}{unit} is within "
+            f"the held-out pairs' scatter (t = {t:.2f} <= {st.get('guard_t_min', 1.0):g}): kept the "
+            f"start values -> {out}"
+        )
     return (
         f"{head}; tuned {fmt(res.tuned)} not better under calibrate's {k} ({hb:.4g} -> "
         f"{ha:.4g}{unit}): kept the start values -> {out}"
