@@ -112,7 +112,13 @@ def main(argv=None) -> int:
             return 2
         extra.setdefault(m, []).extend(["--set", kv])
     out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:  # before any run: a bad output folder must not cost the whole curve
+        out.mkdir(parents=True, exist_ok=True)
+        (out / ".write-test").touch()
+        (out / ".write-test").unlink()
+    except OSError as e:
+        print(f"large_networks: cannot write in --out {a.out}: {e.strerror}", file=sys.stderr)
+        return 2
     from jaxcal.io import hdf5
 
     rows = []

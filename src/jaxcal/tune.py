@@ -384,8 +384,7 @@ def _check(dataset, params, config, objective_name) -> tuple[dict, np.ndarray | 
     pairs = None
     if objective_name == "evidence":
         pairs = tune_eval.heldout_pair_errors(dataset, params, config)
-        ok = pairs[np.isfinite(pairs)]
-        m["heldout_m"] = float(np.mean(ok)) if ok.size else math.nan
+        m["heldout_m"] = tune_eval.mean_pair_error(pairs)
     return m, pairs
 
 

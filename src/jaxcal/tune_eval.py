@@ -110,7 +110,12 @@ def heldout_range_error(
 ) -> float:
     """Cross-validated range error over pairs [m] (module docstring): the mean of
     `heldout_pair_errors`; NaN when no held-out pair has both estimates and a range."""
-    scores = heldout_pair_errors(dataset, params, config, n_folds, seed)
+    return mean_pair_error(heldout_pair_errors(dataset, params, config, n_folds, seed))
+
+
+def mean_pair_error(scores: np.ndarray) -> float:
+    """Mean of the finite per-pair errors of `heldout_pair_errors` [m]; NaN when there is none."""
+    scores = np.asarray(scores, dtype=np.float64)
     scores = scores[np.isfinite(scores)]
     return float(np.mean(scores)) if scores.size else math.nan
 

@@ -73,11 +73,10 @@ def run(args) -> int:
             raise JaxcalError("--scenario network needs --nodes N")
         if args.drift:
             raise JaxcalError("--drift applies to trajectory simulation only")
-        scenario = "network"
-        SCENARIOS = {"network": network_scenario(
+        scenario, kwargs = "network", {}
+        SCENARIOS = {scenario: network_scenario(
             args.nodes, seed=args.seed, density=args.density, range_limit_m=args.range_limit,
             wall_density=args.wall_density, n_epochs=args.epochs)}
-        kwargs = {}
     elif args.kind == "mesh":
         from jaxcal.sim.mesh import SCENARIOS, simulate
 
