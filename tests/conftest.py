@@ -3,9 +3,12 @@ state their dtype explicitly and their tests give loose tolerances with a commen
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import jax
@@ -70,10 +73,17 @@ def _release_executables_when_maps_run_high():
     release_if_crowded()
 
 
+# the command line's persistent compilation cache (`jaxcal.compile_cache`): one per test session,
+# not the user's, so the CLI subprocesses share their programs and a run leaves nothing behind
+_XLA_CACHE = tempfile.mkdtemp(prefix="jaxcal-test-xla-")
+atexit.register(shutil.rmtree, _XLA_CACHE, True)
+
+
 def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600, env: dict | None = None):
     """Run `python -m jaxcal.cli ARGS` in a subprocess; returns CompletedProcess (text)."""
     e = dict(os.environ)
     e.setdefault("JAX_PLATFORMS", "cpu")
+    e.setdefault("JAXCAL_CACHE_DIR", _XLA_CACHE)
     e.pop("JAXCAL_DEBUG", None)
     if env:
         e.update(env)

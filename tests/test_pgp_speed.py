@@ -147,6 +147,23 @@ def test_host_chunked_driver_equals_one_scan(jump_runs):
     np.testing.assert_allclose(np.exp(st.logpost), np.exp(st_w.logpost), atol=1e-12)
 
 
+@pytest.mark.parametrize("split", [5, 12, 13])
+def test_advance_chunked_continues_exactly(split):
+    """Two `advance_chunked` calls split at any epoch (before, at and after the jump that sends
+    epochs back to the full grid) give `run_chunked`'s epochs and final state: tuning's tail
+    starts from the first part's state."""
+    ds = mesh(k=22, jump=(12, 4, 0.9))
+    cfg, prm, inp, lp0, _ = prepare(ds, PGPParams(**{**FINE, "likelihood": "window"}), None)
+    st_w, out_w = pgp.run_chunked(cfg, prm, inp, lp0, chunk=8, full_chunk=2)
+    st_a, out_a = pgp.advance_chunked(cfg, prm, inp, pgp.init_state(cfg, lp0), 0, split, 8, 2)
+    st_b, out_b = pgp.advance_chunked(cfg, prm, inp, st_a, split, None, 8, 2)
+    for a, b, w in zip(jax.tree.leaves(out_a), jax.tree.leaves(out_b), jax.tree.leaves(out_w),
+                       strict=True):
+        np.testing.assert_array_equal(np.concatenate([np.asarray(a), np.asarray(b)]), np.asarray(w))
+    np.testing.assert_array_equal(np.asarray(pgp.full_state(cfg, st_b).logpost),
+                                  np.asarray(st_w.logpost))
+
+
 # small windows of 3 m (W = 12) inside the 4 m ones (W = 16): with sigma_v = 0.12 m most windowed
 # epochs hold the small window's bound; with 0.2 m none does (each windowed epoch runs on the
 # big window) and the jump of node 4 also sends epochs back to the full grid

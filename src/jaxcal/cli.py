@@ -45,6 +45,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "report": ("report", "write figures and an index.html of results against the truth, and of sweeps"),
 }
 
+# commands that compile XLA programs: they use the persistent compilation cache (`compile_cache`)
+_COMPILING = frozenset({"demo", "calibrate", "simulate", "stats", "evaluate", "gate", "tune", "sweep", "report"})
+
 
 class _Parser(argparse.ArgumentParser):
     """argparse that reports usage errors as one line and exit status 2."""
@@ -154,6 +157,10 @@ def main(argv: list[str] | None = None) -> int:
     from jaxcal.errors import JaxcalError
 
     debug = os.environ.get("JAXCAL_DEBUG") not in (None, "", "0")
+    if args.command in _COMPILING:
+        from jaxcal import compile_cache
+
+        compile_cache.enable()  # programs compiled once per machine (JAXCAL_CACHE_DIR=off: not)
     try:
         rc = args._module.run(args)
         return int(rc or 0)

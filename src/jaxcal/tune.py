@@ -118,6 +118,10 @@ class Problem(eqx.Module):
     segment: int = eqx.field(static=True, default=0)  # epochs per checkpointed segment (0: sqrt)
     folds: Array | None = None  # (F, N, N) bool held-out pairs (evidence)
     targets: Float[Array, "nodes nodes"] | None = None  # median range per pair [m] (evidence)
+    # the filter state before `inp`'s first epoch (None: the initial state), one per fold for
+    # evidence (stacked): the tail gradient phase (`tune(tail=...)`) starts from calibrate's run
+    state: pgp.FilterState | None = None
+    k0: int = eqx.field(static=True, default=0)  # index of `inp`'s first epoch in the recording
 
 
 def make_problem(
@@ -129,6 +133,8 @@ def make_problem(
     remat: bool = True,
     est_temp: float = 10.0,
     segment: int | None = None,
+    tail_from: int = 0,
+    states=None,
 ) -> tuple[Problem, np.ndarray]:
     """Prepare the filter for tuning (soft hypothesis cut, rematerialised epochs).
 
@@ -139,6 +145,10 @@ def make_problem(
             in tau). remat: checkpoint every epoch (memory ~ epochs x carry).
         est_temp: temperature of the `truth` objective's estimate (`soft_estimates`, nats).
         segment: epochs per checkpointed segment of the scan (None: ceil(sqrt(epochs))).
+        tail_from, states: differentiate only epochs `tail_from:` of the dataset, from these
+            filter states before epoch `tail_from` (one per fold for evidence, in `pair_folds`'
+            order, else one; e.g. `tune_eval.heldout_split`'s); float arrays are cast to the
+            problem's dtype. The evidence targets are the whole dataset's.
 
     Returns:
         (Problem, order): `order[k]` is the dataset index of filter node k.
@@ -165,6 +175,14 @@ def make_problem(
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # pairs never measured: NaN
                 targets = jnp.asarray(np.nanmedian(np.asarray(inp.z, np.float64), axis=0), ftype)
+    state = None
+    if tail_from:
+        if states is None or len(states) != (len(folds) if folds is not None else 1):
+            raise ValueError("make_problem: tail_from needs one start state per fold (or one)")
+        inp = dataclasses.replace(inp, z=inp.z[tail_from:], dt=inp.dt[tail_from:])
+        cast = [jax.tree.map(lambda a: a.astype(ftype) if jnp.issubdtype(a.dtype, jnp.floating)
+                             else a, st) for st in states]
+        state = jax.tree.map(lambda *a: jnp.stack(a), *cast) if folds is not None else cast[0]
     prob = Problem(
         cfg,
         prm,
@@ -177,6 +195,8 @@ def make_problem(
         int(segment or 0),
         folds,
         targets,
+        state,
+        int(tail_from),
     )
     return prob, order
 
@@ -228,7 +248,9 @@ def objective(theta: Float[Array, " p"], prob: Problem) -> Float[Array, ""]:
     prm = _with_theta(prob.prm, theta)
     if prob.kind == "evidence":
         return _heldout_loss(prm, prob)
-    st, out = filter_segmented(prob.cfg, prm, prob.inp, prob.logpost0, prob.segment or None)
+    st, out = filter_segmented(
+        prob.cfg, prm, prob.inp, prob.logpost0, prob.segment or None, prob.state, prob.k0
+    )
     if prob.kind == "truth":
         return final_rmse(_final_estimates(st, out, prm, prob)[None], prob.truth)
     return neg_log_predictive(out, prm.sigma_r, prm.p_out, prob.span_m)
@@ -245,9 +267,12 @@ def _final_estimates(st, out, prm, prob: Problem):
 def _heldout_loss(prm: pgp.FilterParams, prob: Problem) -> Float[Array, ""]:
     """The evidence objective (module docstring): per fold, run without its pairs, predict them."""
 
-    def fold(m):
+    def fold(x):
+        m, st0 = x
         inp = dataclasses.replace(prob.inp, z=jnp.where(m[None], jnp.nan, prob.inp.z))
-        st, out = filter_segmented(prob.cfg, prm, inp, prob.logpost0, prob.segment or None)
+        st, out = filter_segmented(
+            prob.cfg, prm, inp, prob.logpost0, prob.segment or None, st0, prob.k0
+        )
         est = _final_estimates(st, out, prm, prob)
         ok = jnp.triu(m, 1) & jnp.isfinite(prob.targets) & jnp.isfinite(est).all(-1)[:, None]
         ok = ok & jnp.isfinite(est).all(-1)[None, :]
@@ -257,7 +282,7 @@ def _heldout_loss(prm: pgp.FilterParams, prob: Problem) -> Float[Array, ""]:
         loss = jnp.where(ok, jnp.sqrt(r * r + HELDOUT_EPS_M**2), 0.0)
         return jnp.sum(loss), jnp.sum(ok)
 
-    total, count = jax.lax.map(fold, prob.folds)
+    total, count = jax.lax.map(fold, (prob.folds, prob.state))
     n = jnp.sum(count)
     return jnp.where(n > 0, jnp.sum(total) / jnp.maximum(n, 1), jnp.nan)
 
@@ -379,13 +404,26 @@ def check(dataset: MeshDataset, params, config: str | None, objective_name: str)
     return _check(dataset, params, config, objective_name)[0]
 
 
-def _check(dataset, params, config, objective_name) -> tuple[dict, np.ndarray | None]:
+def _check(
+    dataset, params, config, objective_name, pairs=None
+) -> tuple[dict, np.ndarray | None]:
+    """`check`; `pairs`: the held-out pair errors of these params when already measured."""
     m = tune_eval.hard_metrics(dataset, params, config)
-    pairs = None
     if objective_name == "evidence":
-        pairs = tune_eval.heldout_pair_errors(dataset, params, config)
+        if pairs is None:
+            pairs = tune_eval.heldout_pair_errors(dataset, params, config)
         m["heldout_m"] = tune_eval.mean_pair_error(pairs)
     return m, pairs
+
+
+def _tail_states(dataset, params, objective_name, config, split):
+    """The start's filter states before epoch `split` (calibrate's run, hard cut, its precision):
+    one per fold for evidence (and that run's held-out pair errors), else one (and None)."""
+    if objective_name == "evidence" and tune_eval.pair_folds(dataset.n_nodes):
+        return tune_eval.heldout_split(dataset, params, config, split)
+    cfg, prm, inp, lp0, _ = pgp.prepare(dataset, params, config, "pgp")
+    st, _ = tune_eval.advance(cfg, prm, inp, pgp.init_state(cfg, lp0), 0, split)
+    return None, [st]
 
 
 def tune(
@@ -401,6 +439,7 @@ def tune(
     rtol: float = 1e-3,
     atol: float = 1e-4,
     segment: int | None = None,
+    tail: int | None = None,
     progress: ProgressCallback | None = None,
     on_step: Callable[[int, float], None] | None = None,
 ) -> TuneResult:
@@ -410,7 +449,12 @@ def tune(
     Gradient phase: BFGS on the objective with the soft cut of tau, over the first `epochs` epochs
     (None: all) on a grid of `cell_m` cells (None: `params.cell_m`, calibrate's), the filter's
     likelihood path from `params`, in float64, the scan in checkpointed segments of `segment` epochs
-    (`mesh.segmented`: memory ~ 2 sqrt(K) carries). Guard: `tune_eval.hard_metrics` of the start
+    (`mesh.segmented`: memory ~ 2 sqrt(K) carries). With `tail`, the filter runs every epoch but
+    is differentiated through the last `tail` only (truncated back-propagation): the earlier epochs
+    are calibrate's own run with the start values (hard cut, its precision, `tune_eval.advance`),
+    whose state (per held-out fold) the differentiated epochs start from. The objective reads the
+    final estimates, which the last epochs move most; the guard still judges the whole run. For
+    evidence with `epochs` and `cell_m` None, those prefix runs are also the guard's start runs. Guard: `tune_eval.hard_metrics` of the start
     and of the end on the whole dataset with `params` as `calibrate` will run them; the tuned values
     are returned only if their hard figure (`hard_key`: `rmse_m` for truth, for evidence the
     cross-validated range error of held-out pairs, `tune_eval.heldout_range_error`) is lower.
@@ -422,6 +466,7 @@ def tune(
         config: frame configuration name.
         objective_name: "evidence" (NLPL [nats per range], no truth) or "truth" (RMSE [m]).
         epochs, cell_m: a cheaper surrogate for the gradient phase (None: what calibrate runs).
+        tail: differentiate the last `tail` epochs only (None or >= the epochs: all of them).
         tau_temp: temperature of the soft tau cut. max_steps, rtol, atol: BFGS settings.
         segment: epochs per checkpointed segment (None: ceil(sqrt(K))).
         progress: called with 1 after every BFGS step. on_step: called with (step, objective).
@@ -441,8 +486,17 @@ def tune(
     ds = window(dataset, epochs)
     mix = params.range_model == "mixture"
     t0 = time.perf_counter()
+    split = max(0, ds.n_epochs - int(tail)) if tail else 0
+    pairs_before, states = None, None
+    if split:
+        pairs, states = _tail_states(ds, surrogate, objective_name, config, split)
+        if ds is dataset and cell_m is None:  # calibrate's own run of the start: the guard's too
+            pairs_before = pairs
     with jax.enable_x64(True):  # gradients through thousands of log-posterior epochs need float64
-        prob, _ = make_problem(ds, surrogate, config, objective_name, tau_temp, segment=segment)
+        prob, _ = make_problem(
+            ds, surrogate, config, objective_name, tau_temp, segment=segment,
+            tail_from=split, states=states,
+        )
         dtype = prob.logpost0.dtype
         theta0 = theta_of(
             params.sigma_r, params.sigma_v, params.tau, dtype,
@@ -467,7 +521,7 @@ def tune(
             theta, after = theta0, before
     t1 = time.perf_counter()
     start, tuned = values_of(theta0), values_of(theta)
-    hard_before, pairs_before = _check(dataset, params, config, objective_name)
+    hard_before, pairs_before = _check(dataset, params, config, objective_name, pairs_before)
     hard_after, pairs_after = (
         (dict(hard_before), pairs_before)  # the optimiser did not move: nothing to check
         if tuned == start
@@ -499,13 +553,14 @@ def tune(
         message=message,
         settings={
             "epochs": ds.n_epochs,
+            "grad_from": split,  # epochs before it: calibrate's run, not differentiated
             "cell_m": surrogate.cell_m,
             "check_cell_m": params.cell_m,
             "check_epochs": dataset.n_epochs,
             "likelihood": params.likelihood,
             "objective_used": prob.kind,
             "n_cells_side": prob.cfg.grid.n_side,
-            "segment": prob.segment or segment_length(ds.n_epochs),
+            "segment": prob.segment or segment_length(ds.n_epochs - split),
             "tau_temp": tau_temp,
             "dtype": str(dtype),
             "rtol": rtol,

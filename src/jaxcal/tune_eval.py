@@ -21,6 +21,7 @@ are better here), and the tuning benchmarks rank parameter sets with them.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax.numpy as jnp
@@ -31,7 +32,16 @@ from jaxcal.mesh import pgp
 from jaxcal.params import with_overrides
 from jaxcal.tune_metrics import grid_span_m, neg_log_predictive, track_rmse, truth_in_filter_order
 
-__all__ = ["hard_run", "hard_metrics", "pair_folds", "heldout_range_error"]
+__all__ = [
+    "hard_run",
+    "hard_metrics",
+    "pair_folds",
+    "heldout_pair_errors",
+    "fold_pair_errors",
+    "heldout_split",
+    "advance",
+    "heldout_range_error",
+]
 
 
 def _params(params) -> pgp.PGPParams:
@@ -44,8 +54,6 @@ def hard_run(dataset: MeshDataset, params, config: str | None, z_mask=None):
     p = _params(params)
     cfg, prm, inp, lp0, order = pgp.prepare(dataset, p, config, "pgp")
     if z_mask is not None:
-        import dataclasses
-
         inp = dataclasses.replace(inp, z=jnp.where(jnp.asarray(z_mask)[None], jnp.nan, inp.z))
     _, out = pgp.run_chunked(cfg, prm, inp, lp0)
     return cfg, prm, out, order
@@ -90,18 +98,61 @@ def heldout_pair_errors(
     the fixed order of `pair_folds` (fold by fold); NaN where the pair has no range or estimate.
     The same order for any parameters, so two runs compare pair by pair (the guard's test)."""
     p = _params(params)
-    n = dataset.n_nodes
     scores = []
-    for m in pair_folds(n, n_folds, seed):
+    for m in pair_folds(dataset.n_nodes, n_folds, seed):
         _, _, out, order = hard_run(dataset, p, config, z_mask=m)
-        z = pgp.symmetric_ranges(np.asarray(dataset.range, dtype=np.float64))[:, order][:, :, order]
-        est = np.asarray(out.estimate, dtype=np.float64)
-        ii, jj = np.nonzero(np.triu(m))
-        d = np.linalg.norm(est[:, ii] - est[:, jj], axis=-1)  # (K, P)
-        e = np.abs(z[:, ii, jj] - d)
-        for c in range(e.shape[1]):
-            col = e[:, c][np.isfinite(e[:, c])]
-            scores.append(float(np.median(col)) if col.size else math.nan)
+        scores.append(fold_pair_errors(dataset, m, out.estimate, order))
+    return np.concatenate(scores) if scores else np.zeros(0)
+
+
+def advance(cfg, prm, inp, st, start: int, stop: int | None = None):
+    """Epochs `start:stop` of calibrate's run from state `st` -> (state, FilterOut): the windowed
+    fast path (`pgp.advance_chunked`), else one scan (`pgp._scan_jit`); either continues exactly."""
+    if cfg.window and not cfg.n_snap:
+        return pgp.advance_chunked(cfg, prm, inp, st, start, stop)
+    stop = int(inp.z.shape[0]) if stop is None else int(stop)
+    part = dataclasses.replace(inp, z=inp.z[start:stop], dt=inp.dt[start:stop])
+    return pgp._scan_jit(cfg, prm, part, st, jnp.asarray(start))
+
+
+def heldout_split(
+    dataset: MeshDataset, params, config: str | None, split: int, n_folds: int = 2, seed: int = 0
+) -> tuple[np.ndarray, list]:
+    """`heldout_pair_errors`, each fold's run taken in two parts at epoch `split` (the same run),
+    and each fold's filter state before epoch `split` (where `tune`'s gradient phase starts).
+
+    Returns:
+        (scores as `heldout_pair_errors`, [FilterState per fold]); `split` = 0: initial states.
+    """
+    p = _params(params)
+    cfg, prm, inp, lp0, order = pgp.prepare(dataset, p, config, "pgp")
+    scores, states = [], []
+    for m in pair_folds(dataset.n_nodes, n_folds, seed):
+        fold = dataclasses.replace(inp, z=jnp.where(jnp.asarray(m)[None], jnp.nan, inp.z))
+        st = pgp.init_state(cfg, lp0)
+        parts = []
+        if split > 0:
+            st, out = advance(cfg, prm, fold, st, 0, split)
+            parts.append(np.asarray(out.estimate))
+        states.append(st)
+        _, out = advance(cfg, prm, fold, st, split)
+        parts.append(np.asarray(out.estimate))
+        scores.append(fold_pair_errors(dataset, m, np.concatenate(parts), order))
+    return (np.concatenate(scores) if scores else np.zeros(0)), states
+
+
+def fold_pair_errors(dataset: MeshDataset, mask, estimate, order) -> np.ndarray:
+    """`heldout_pair_errors` of one fold: its pairs (`mask`, filter order, upper triangle in
+    row-major order) scored on a run without them (`estimate`: (K, N, 2) in filter order)."""
+    z = pgp.symmetric_ranges(np.asarray(dataset.range, dtype=np.float64))[:, order][:, :, order]
+    est = np.asarray(estimate, dtype=np.float64)
+    ii, jj = np.nonzero(np.triu(np.asarray(mask)))
+    d = np.linalg.norm(est[:, ii] - est[:, jj], axis=-1)  # (K, P)
+    e = np.abs(z[:, ii, jj] - d)
+    scores = []
+    for c in range(e.shape[1]):
+        col = e[:, c][np.isfinite(e[:, c])]
+        scores.append(float(np.median(col)) if col.size else math.nan)
     return np.asarray(scores, dtype=np.float64)
 
 

@@ -758,7 +758,7 @@ def _filter(
 
     The final state's `logpost` holds the full-grid posteriors (windows placed on the grid)."""
     st, out = _scan(cfg, prm, inp, init_state(cfg, logpost0))
-    return dataclasses.replace(st, logpost=_full_logpost(cfg, st), windowed=jnp.asarray(False)), out
+    return full_state(cfg, st), out
 
 
 run_filter = eqx.filter_jit(_filter)
@@ -852,11 +852,44 @@ def run_chunked(
         if progress is not None:
             return run_segmented(cfg, prm, inp, logpost0, progress=progress)
         return run_filter(cfg, prm, inp, logpost0)
-    n_ep = int(inp.z.shape[0])
-    st = init_state(cfg, logpost0)
-    n = logpost0.shape[0]
+    st, out = advance_chunked(
+        cfg, prm, inp, init_state(cfg, logpost0), 0, None, chunk, full_chunk, progress
+    )
+    return full_state(cfg, st), out
+
+
+def full_state(cfg: FilterConfig, st: FilterState) -> FilterState:
+    """The state with its full-grid `logpost` (windows placed on the grid), not windowed."""
+    return dataclasses.replace(st, logpost=_full_logpost(cfg, st), windowed=jnp.asarray(False))
+
+
+def advance_chunked(
+    cfg: FilterConfig,
+    prm: FilterParams,
+    inp: FilterInputs,
+    st: FilterState,
+    start: int = 0,
+    stop: int | None = None,
+    chunk: int = 64,
+    full_chunk: int = 4,
+    progress=None,
+) -> tuple[FilterState, FilterOut]:
+    """Epochs `start:stop` of `inp` from state `st` on `run_chunked`'s fast path (which is this
+    from `init_state` over all epochs, then `full_state`).
+
+    The returned state is the scan's own (possibly windowed: `logpost` stale), so a later call
+    with `start=stop` continues exactly where this one ended: two calls give the epochs and the
+    state of one (tested). Needs `cfg.window` and no snapshots.
+
+    Returns:
+        (state after epoch `stop - 1`, FilterOut of epochs `start:stop`).
+    """
+    if not cfg.window or cfg.n_snap:
+        raise ValueError("advance_chunked: needs the windowed likelihood and no snapshots")
+    n_ep = int(inp.z.shape[0]) if stop is None else int(stop)
+    n = st.logpost.shape[0]
     log_cells = np.log(np.maximum(np.asarray(inp.mask).reshape(n, -1).sum(1), 1))
-    outs, k = [], 0
+    outs, k = [], int(start)
 
     def part(a, b, pad=0):
         z, dt = inp.z[a:b], inp.dt[a:b]
@@ -890,9 +923,9 @@ def run_chunked(
         k += m
         if progress is not None:
             progress(m)
-    out = jax.tree.map(lambda *a: jnp.concatenate(a), *outs)
-    st = dataclasses.replace(st, logpost=_full_logpost(cfg, st), windowed=jnp.asarray(False))
-    return st, out
+    if not outs:
+        raise ValueError(f"advance_chunked: no epochs in {start}:{n_ep}")
+    return st, jax.tree.map(lambda *a: jnp.concatenate(a), *outs)
 
 
 def run_segmented(
@@ -923,8 +956,7 @@ def run_segmented(
         if progress is not None:
             progress(m)
     out = jax.tree.map(lambda *a: jnp.concatenate(a), *outs)
-    st = dataclasses.replace(st, logpost=_full_logpost(cfg, st), windowed=jnp.asarray(False))
-    return st, out
+    return full_state(cfg, st), out
 
 
 def _setup(params: PGPParams, grid: G.Grid, n: int, mode: str, snaps: np.ndarray, z, dt):

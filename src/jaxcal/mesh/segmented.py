@@ -35,6 +35,8 @@ def filter_segmented(
     inp: pgp.FilterInputs,
     logpost0: Float[Array, "n nx ny"],
     segment: int | None = None,
+    state: pgp.FilterState | None = None,
+    k0=0,
 ) -> tuple[pgp.FilterState, pgp.FilterOut]:
     """`pgp.run_filter`'s epochs as checkpointed segments (differentiable, sqrt-N memory).
 
@@ -43,6 +45,9 @@ def filter_segmented(
         segment: epochs per segment S (None: `segment_length(K)`). K need not be a multiple of S:
             the last K mod S epochs run as one more checkpointed scan (an epoch without ranges is
             not a no-op, so the data are never padded).
+        state: the state before `inp`'s first epoch (None: `pgp.init_state(cfg, logpost0)`),
+            e.g. `pgp.advance_chunked`'s after the earlier epochs of a recording (windowed or not).
+        k0: index of `inp`'s first epoch in the recording (snapshots).
 
     Returns:
         (final FilterState with the full-grid `logpost`, FilterOut of all K epochs), as
@@ -58,21 +63,20 @@ def filter_segmented(
         return pgp._scan(inner, prm, dataclasses.replace(inp, z=z, dt=dt), st, k0)
 
     seg = jax.checkpoint(run)
-    st = pgp.init_state(cfg, logpost0)
+    st = pgp.init_state(cfg, logpost0) if state is None else state
     outs = []
     if q:
         z = inp.z[: q * s].reshape((q, s) + inp.z.shape[1:])
         dt = inp.dt[: q * s].reshape(q, s)
-        k0 = jnp.arange(q) * s
+        ks = k0 + jnp.arange(q) * s
 
         def body(st, x):
             return seg(st, *x)
 
-        st, out = jax.lax.scan(body, st, (z, dt, k0))
+        st, out = jax.lax.scan(body, st, (z, dt, ks))
         outs.append(jax.tree.map(lambda a: a.reshape((q * s,) + a.shape[2:]), out))
     if r or not q:
-        st, out = seg(st, inp.z[q * s :], inp.dt[q * s :], jnp.asarray(q * s))
+        st, out = seg(st, inp.z[q * s :], inp.dt[q * s :], k0 + jnp.asarray(q * s))
         outs.append(out)
     out = outs[0] if len(outs) == 1 else jax.tree.map(lambda *a: jnp.concatenate(a), *outs)
-    full = pgp._full_logpost(cfg, st)
-    return dataclasses.replace(st, logpost=full, windowed=jnp.asarray(False)), out
+    return pgp.full_state(cfg, st), out
