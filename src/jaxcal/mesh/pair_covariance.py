@@ -138,13 +138,20 @@ def pair_covariance(jac: np.ndarray, e: np.ndarray, w: np.ndarray, spread: np.nd
 
 
 def position_covariance(range_m: np.ndarray, position: np.ndarray, anchors: tuple[int, int, int],
-                        offset: bool = False) -> np.ndarray:
+                        offset: bool = False, robust_scale: float | None = None) -> np.ndarray:
     """(N, D, D) covariance of a mesh estimate `position` (frame `anchors`) under per-pair systematic
-    errors, for an estimator that weighs every measured pair alike (least-squares influence), e.g. the
-    grid filter, whose posterior counts every epoch as independent. Without a fitted range offset
-    (`offset=False`) a common offset of all ranges is one more shared pattern (a column of ones) whose
-    amplitude the residuals estimate: the estimator carries its effect. NaN for nodes without a finite
-    position or that the pairs do not fix; zeros on the coordinates the frame fixes."""
+    errors. Without a fitted range offset (`offset=False`) a common offset of all ranges is one more
+    shared pattern (a column of ones) whose amplitude the residuals estimate: the estimator carries its
+    effect. NaN for nodes without a finite position or that the pairs do not fix; zeros on the
+    coordinates the frame fixes.
+
+    With `robust_scale` None: the covariance of an estimator that weighs every measured pair alike
+    (least-squares influence), at `position` itself. With a scale s [m] (e.g. a grid filter's sigma_r,
+    whose estimate is not a least-squares fit): the pairs' medians are first fitted from `position` by
+    Cauchy-robust least squares of scale s over the free coordinates (`polish`), the covariance is that
+    of this fit (pairs weighted by their Cauchy weights 1 / (1 + (e / s)^2) at it, so a pair metres off
+    neither moves it nor sizes the others' errors), and each node's displacement d from the fit to
+    `position` is added as d d^T (the estimate's error is the fit's plus d)."""
     x = np.asarray(position, dtype=np.float64)
     n, d = x.shape
     a0, a1, a2 = anchors
@@ -165,7 +172,10 @@ def position_covariance(range_m: np.ndarray, position: np.ndarray, anchors: tupl
     if d == 3:
         mask[a2, 2] = False
     free = np.flatnonzero(mask.ravel())
-    diff = x[i] - x[j]
+    x_fit, w = x, np.ones(i.size)
+    if robust_scale is not None:
+        x_fit = polish(x, i, j, zmed, free, float(robust_scale))
+    diff = x_fit[i] - x_fit[j]
     dist = np.linalg.norm(diff, axis=1)
     u = diff / np.maximum(dist, 1e-12)[:, None]
     full = np.zeros((i.size, n * d))
@@ -175,15 +185,44 @@ def position_covariance(range_m: np.ndarray, position: np.ndarray, anchors: tupl
         full[rows, j * d + k] = -u[:, k]
     jac = full[:, free]
     e = zmed - dist
+    if robust_scale is not None:
+        w = 1.0 / (1.0 + (e / float(robust_scale)) ** 2)
     spread = pair_spread(r, i, j)
     if offset:
         jac = np.column_stack([jac, np.ones(i.size)])
         shared = spread[:, None]
     else:
         shared = np.column_stack([spread, np.ones(i.size)])
-    cov, _ = pair_covariance(jac, e, np.ones(i.size), spread, i, j, n, np.zeros(jac.shape[1]), shared)
+    cov, _ = pair_covariance(jac, e, w, spread, i, j, n, np.zeros(jac.shape[1]), shared)
     cov_all = np.zeros((n * d, n * d))
     cov_all[np.ix_(free, free)] = cov[:free.size, :free.size]
     for k in np.flatnonzero(placed):
         out[k] = cov_all[k * d:(k + 1) * d, k * d:(k + 1) * d]
+        dev = x[k] - x_fit[k]
+        out[k] = out[k] + np.outer(dev, dev)
     return 0.5 * (out + np.swapaxes(out, 1, 2))
+
+
+def polish(x: np.ndarray, i: np.ndarray, j: np.ndarray, z: np.ndarray, free: np.ndarray,
+           scale: float) -> np.ndarray:
+    """`x` (N, D) with its `free` coordinates (flat indices) fitted to the pair ranges z (pairs i, j)
+    by Cauchy-robust least squares of scale `scale` [m] (scipy `least_squares`, trust region), from
+    `x`; the other coordinates are kept. Returns `x` unchanged where the fit fails."""
+    from scipy.optimize import least_squares  # noqa: PLC0415
+
+    def res(theta):
+        y = x.ravel().copy()
+        y[free] = theta
+        y = y.reshape(x.shape)
+        return np.linalg.norm(y[i] - y[j], axis=1) - z
+
+    try:
+        sol = least_squares(res, x.ravel()[free], loss="cauchy", f_scale=scale, method="trf",
+                            max_nfev=200)
+    except (ValueError, np.linalg.LinAlgError):
+        return x
+    if not np.isfinite(sol.x).all():
+        return x
+    y = x.ravel().copy()
+    y[free] = sol.x
+    return y.reshape(x.shape)

@@ -1299,7 +1299,8 @@ def with_pair_covariance(res: Result, range_m: np.ndarray) -> Result:
     anchors = res.frame_anchors()
     if res.covariance is None or anchors is None or res.position.shape[1] != 2:
         return res
-    pc = position_covariance(range_m, res.position, anchors, offset=False)
+    pc = position_covariance(range_m, res.position, anchors, offset=False,
+                             robust_scale=float(res.params.get("sigma_r", 0.3)))
     cov = np.array(res.covariance, dtype=np.float64, copy=True)
     for k in range(cov.shape[0]):
         if np.isfinite(pc[k]).all() and np.isfinite(cov[k]).all():

@@ -1,0 +1,53 @@
+"""`position_covariance` with a robust scale (what `--method pgp` reports): a gross-outlier pair neither
+sizes the other pairs' errors nor widens every node, and an estimate off the pairs' fit is as uncertain
+as its distance from it."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from conftest import random_layout
+from jaxcal.mesh.pair_covariance import polish, position_covariance
+
+
+def network(rng, n=9, k=60, noise=0.05, outlier_m=4.0):
+    pos, d = random_layout(rng, n, 20.0, min_sep=2.0)
+    pos = pos - pos[0]
+    c, s = pos[1] / np.linalg.norm(pos[1])
+    rot = np.array([[c, s], [-s, c]])
+    pos = pos @ rot.T  # frame (0, 1, 2): a0 at the origin, a1 on +x
+    if pos[2, 1] < 0:
+        pos[:, 1] *= -1
+    r = d[None] + rng.normal(0, noise, (k, n, n))
+    r = 0.5 * (r + np.swapaxes(r, 1, 2))
+    r[:, 4, 7] += outlier_m  # one pair metres off at every epoch (an NLOS pair)
+    r[:, 7, 4] += outlier_m
+    r[:, np.arange(n), np.arange(n)] = np.nan
+    return pos, r
+
+
+def test_an_outlier_pair_does_not_widen_every_node(rng):
+    pos, r = network(rng)
+    est = pos + rng.normal(0, 0.03, pos.shape) * (np.arange(len(pos)) >= 2)[:, None]
+    plain = position_covariance(r, est, (0, 1, 2))
+    robust = position_covariance(r, est, (0, 1, 2), robust_scale=0.3)
+    rms = lambda c: np.sqrt(np.trace(c, axis1=1, axis2=2))[2:]  # noqa: E731
+    assert np.all(np.isfinite(robust[2:]))
+    assert np.median(rms(robust)) < 0.25 < np.median(rms(plain))  # plain: metres from one pair
+    for c in robust:  # symmetric positive semi-definite
+        assert np.allclose(c, c.T) and np.linalg.eigvalsh(c).min() >= -1e-12
+
+
+def test_an_estimate_off_the_fit_carries_its_displacement(rng):
+    pos, r = network(rng, outlier_m=0.0)
+    est = pos.copy()
+    est[5] += (0.6, -0.4)  # node 5 off by 0.72 m, the others at the truth
+    cov = position_covariance(r, est, (0, 1, 2), robust_scale=0.3)
+    assert np.trace(cov[5]) >= 0.6**2 + 0.4**2 - 0.05
+    e = est[5] - pos[5]
+    assert e @ np.linalg.solve(cov[5], e) <= 5.991  # the truth inside its 95 % ellipse
+    i, j = np.triu_indices(len(pos), 1)
+    z = np.median(r[:, i, j], axis=0)
+    free = np.flatnonzero(np.r_[[False, False, True, False], np.ones(2 * len(pos) - 4, bool)])
+    fit = polish(est, i, j, z, free, 0.3)
+    assert np.abs(fit - pos).max() < 0.1  # the fit returns to the pairs' positions
