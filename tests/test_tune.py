@@ -305,6 +305,17 @@ def test_tail_gradient_starts_from_calibrates_run():
     assert res.hard_before["heldout_m"] == pytest.approx(E.heldout_range_error(ds, p, None))
 
 
+def test_bfgs_stops_when_the_objective_stops_falling(monkeypatch):
+    """A line search that keeps trying without lowering the objective by rtol stops after
+    `PATIENCE` steps (a rippled plateau: large gradients, values within 2e-4)."""
+    monkeypatch.setattr(T, "objective", lambda theta, prob: 1.0 + 1e-4 * jnp.sin(1e4 * theta[0]))
+    seen = []
+    theta, steps, ok, message = T._bfgs(jnp.zeros(3), None, 1e-3, 1e-4, 50,
+                                        lambda k, v: seen.append(v))
+    assert steps == T.PATIENCE < 50 and not ok and message == f"no progress in {T.PATIENCE} steps"
+    assert len(seen) == steps and max(seen) - min(seen) <= 2e-4
+
+
 def test_theta_round_trip_with_the_mixture_parameters():
     theta = T.theta_of(0.4, 0.2, 0.85, jnp.float64, nlos_weight=0.15, nlos_mean_m=2.5)
     v = T.values_of(theta)

@@ -321,21 +321,32 @@ def _bfgs(theta0, prob: Problem, rtol: float, atol: float, max_steps: int, on_st
     )
     state = solver.init(fn, theta0, prob, opts, f_struct, f_struct, tags)
     theta, steps = theta0, 0
+    best, stale = math.inf, 0
     done, result = terminate(theta, state, prob)
-    while not bool(done) and steps < max_steps:
+    while not bool(done) and steps < max_steps and stale < PATIENCE:
         theta, state, value = step(theta, state, prob)
         steps += 1
+        v = float(value)
         if on_step is not None:
-            on_step(steps, float(value))
+            on_step(steps, v)
+        # the value at the step's (trial) point: a line search that keeps shrinking its step
+        # without lowering the objective by rtol is not going anywhere
+        stale = 0 if v < best - rtol * abs(best) else stale + 1
+        best = min(best, v)
         done, result = terminate(theta, state, prob)
     ok = bool(done) and result == optx.RESULTS.successful
     if ok:
         message = "converged"
     elif bool(done):
         message = str(optx.RESULTS[result]).split(".")[0]
+    elif stale >= PATIENCE:
+        message = f"no progress in {PATIENCE} steps"
     else:
         message = f"stopped at {max_steps} steps"
     return theta, steps, ok, message
+
+
+PATIENCE = 4  # BFGS steps without lowering the objective by rtol before `_bfgs` stops
 
 
 _value = eqx.filter_jit(objective)
