@@ -431,7 +431,13 @@ def test_summary_line_units_and_what_was_tuned_on():
     )
     line = _summary(res, "evidence", "p.json")
     assert "calibrate's heldout_m (1.5 -> 1.6 m)" in line and "nats" not in line
-    assert "gradient on 200 of 2000 epochs at 1 m cells" in line and "kept the start" in line
+    assert "gradient on 200 epochs (the first 200 of 2000) at 1 m cells" in line
+    assert "kept the start" in line
+    tail = T.TuneResult(**{**{f: getattr(res, f) for f in res.__dataclass_fields__},
+                           "settings": {**res.settings, "epochs": 2000, "grad_from": 1800,
+                                        "cell_m": 0.5}})
+    assert "gradient through the last 200 of 2000 epochs at 0.5 m cells" in _summary(
+        tail, "evidence", "p.json")
     # better on average but within the held-out pairs' scatter: said so, start kept
     noisy = T.TuneResult(**{**{f: getattr(res, f) for f in res.__dataclass_fields__},
                             "hard_after": {"heldout_m": 1.4999, "nlpl": 1.9},
