@@ -190,9 +190,21 @@ def unobservable_height(groups, est: np.ndarray, p) -> tuple[np.ndarray, np.ndar
     return out, zstd
 
 
-def finish(dataset, method, p, groups, est, cov, info) -> Result:
+def report_fits(method: str, codes, groups, p, hint: str):
+    """The solver outcome (`jaxcal.solver.report`) of the anchors that get a fit (at least `p.min_ranges`
+    ranges), with its one warning line naming `method` and `hint` when a fit did not converge."""
+    from jaxcal import solver
+
+    fitted = np.asarray(groups.mask).sum(axis=1) >= p.min_ranges
+    rep = solver.report(np.asarray(codes)[fitted], "anchor fits")
+    rep.warn(method, hint)
+    return rep
+
+
+def finish(dataset, method, p, groups, est, cov, info, solver=None) -> Result:
     """Build the Result: NaN rows for anchors with fewer than `p.min_ranges` ranges or failed fits; a NaN
-    height (the rest kept, one warning line) for anchors whose height the path cannot observe."""
+    height (the rest kept, one warning line) for anchors whose height the path cannot observe. `solver`
+    (a `jaxcal.solver.SolverReport`) adds `solver_status` and `solver_failed` to the params."""
     import logging
 
     from jaxcal import __version__
@@ -221,6 +233,8 @@ def finish(dataset, method, p, groups, est, cov, info) -> Result:
     info = dict(info, unobservable_height=[dataset.anchor_ids[a] for a in np.flatnonzero(flat)])
     params = as_dict(p)
     params.update({f"info_{k}": v for k, v in info.items()})
+    if solver is not None:
+        params.update(solver.params())
     return Result(
         ids=dataset.anchor_ids,
         position=est,
