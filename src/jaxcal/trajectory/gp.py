@@ -25,7 +25,7 @@ Anchor search (the paper's iterative cuboid search): a regular G^3 grid in a cub
 (bounding box of the anchor's tag positions plus `margin_m`); the `top_k` (10) best grid samples are
 averaged, the cuboid is shrunk by `shrink` around that average, and this repeats until the half size
 is below `tol_m` (a static number of rounds, `lax.scan`). When an anchor's tag positions are planar
-(`ls.is_planar`), z is not observable from positions in the plane: the search runs in the
+(`common.is_planar`), z is not observable from positions in the plane: the search runs in the
 plane and the height above it is the predicted range at the found point (side `side`).
 
 Large recordings: the training set of each anchor is a stratified subsample by measured range
@@ -84,7 +84,9 @@ from jaxcal import solver as S
 from jaxcal.data import Result
 from jaxcal.errors import JaxcalError
 from jaxcal.params import with_overrides
-from jaxcal.trajectory.ls import TrajectoryParams, finish, in_float64, is_planar, report_fits
+from jaxcal.precision import in_float64
+from jaxcal.trajectory.common import TrajectoryParams, finish, is_planar, report_fits
+from jaxcal.trajectory.poses import prepare_poses
 
 __all__ = [
     "GPParams",
@@ -589,7 +591,7 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
         raise JaxcalError(
             "parameters grid >= 2, 1 <= top_k <= grid^2, 0 < shrink < 1, tol_m > 0 required"
         )
-    groups, info = p.prepare_poses(dataset)
+    groups, info = prepare_poses(dataset, p)
     pos = np.asarray(groups.position)
     rng_m = np.asarray(groups.range)
     mask = np.asarray(groups.mask)

@@ -44,6 +44,7 @@ from jaxtyping import Array, Bool, Float
 from jaxcal import solver as S
 from jaxcal.data import Result
 from jaxcal.params import with_overrides
+from jaxcal.trajectory.common import finish, report_fits
 from jaxcal.trajectory.gp import (
     Hyper,
     _cone,
@@ -51,7 +52,6 @@ from jaxcal.trajectory.gp import (
     stratified_subsample,
     to_target,
 )
-from jaxcal.trajectory.ls import finish, report_fits
 
 __all__ = [
     "MeanModel",

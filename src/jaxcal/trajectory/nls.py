@@ -28,7 +28,9 @@ from jaxcal import solver as S
 from jaxcal.data import Result
 from jaxcal.errors import JaxcalError
 from jaxcal.params import with_overrides
-from jaxcal.trajectory.ls import TrajectoryParams, finish, in_float64, multilaterate, report_fits
+from jaxcal.precision import in_float64
+from jaxcal.trajectory.common import TrajectoryParams, finish, multilaterate, report_fits
+from jaxcal.trajectory.poses import prepare_poses
 
 __all__ = ["NLSParams", "solve_anchor", "calibrate"]
 
@@ -174,7 +176,7 @@ def calibrate(dataset, params=None, config=None) -> Result:
     p = with_overrides(NLSParams(), params)
     if p.loss not in ("cauchy", "huber", "l2"):
         raise JaxcalError(f"parameter loss: expected cauchy, huber or l2, got {p.loss!r}")
-    groups, info = p.prepare_poses(dataset)
+    groups, info = prepare_poses(dataset, p)
 
     (est, cov, bias, codes), codes, steps = solve_all_checked(groups, p)
     info = dict(info, bias_m=[float(b) for b in bias])
