@@ -34,9 +34,11 @@ def scipy_nls(ds):
     """Per-anchor SciPy robust least squares (see module doc); returns (A, 3) positions."""
     from scipy.optimize import least_squares
 
-    from jaxcal.trajectory.ls import LSParams, multilaterate_all
+    from jaxcal.trajectory.common import multilaterate_all
+    from jaxcal.trajectory.ls import LSParams
+    from jaxcal.trajectory.poses import prepare_poses
 
-    groups, _ = LSParams().prepare_poses(ds)
+    groups, _ = prepare_poses(ds, LSParams())
     pos, rng, mask = (np.asarray(a) for a in (groups.position, groups.range, groups.mask))
     init = np.asarray(multilaterate_all(groups.position, groups.range, groups.mask)[0])
     out = np.full((pos.shape[0], 3), np.nan)

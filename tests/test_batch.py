@@ -255,7 +255,7 @@ def test_irls_all_epochs_equals_direct_fit(rng):
     i, j, z, w = B.observations(r, "all")
     obs = B.Observations(jnp.asarray(i), jnp.asarray(j), jnp.asarray(z), jnp.asarray(w))
     y0 = B._State(jnp.asarray(fast.position)[None] + 0.05, jnp.zeros(1), jnp.zeros((1, N)))
-    st, _ = B._fit_starts(y0, obs, B._Numbers.of(p), p.solver, 1e-12, 500)
+    st, _, _ = B._fit_starts(y0, obs, B._Numbers.of(p), p.solver, 1e-12, 500)
     ref = to_frame(np.asarray(st.x[0]), 0, 1, 2)
     np.testing.assert_allclose(fast.position, ref, atol=1e-5)
     assert abs(fast.offset_m - float(st.c[0])) < 1e-5

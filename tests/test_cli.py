@@ -3,8 +3,10 @@
 import json
 
 import h5py
+import pytest
 
 from conftest import assert_one_line_error, run_cli
+from jaxcal.errors import InputError
 from jaxcal.io import hdf5
 from test_data import small_mesh, small_traj
 
@@ -44,3 +46,27 @@ def test_bad_input_one_line(tmp_path):
     m = hdf5.write(tmp_path / "m.h5", small_mesh())
     assert_one_line_error(run_cli("calibrate", m, "--method", "nosuch", "-o", tmp_path / "r.h5"), "unknown method")
     assert_one_line_error(run_cli("calibrate", m, "--method", "cf", "-o", tmp_path / "r.h5", "--set", "oops"), "KEY=VALUE")
+
+
+@pytest.mark.parametrize(
+    "exc, code, head",
+    [
+        (InputError("top_k must be in [1, 5], got 9"), 2, "jaxcal: error: top_k must be"),
+        (ValueError("operands could not be broadcast"), 1, "jaxcal: internal error: ValueError: operands"),
+        (KeyboardInterrupt(), 130, "jaxcal: interrupted"),
+    ],
+)
+def test_user_errors_are_told_from_internal_ones(monkeypatch, capsys, exc, code, head):
+    """A user-fixable `InputError` (a `ValueError` too) exits 2; a plain ValueError from deep inside is an
+    internal error (exit 1), never blamed on the user; Ctrl-C stays 130. One line each."""
+    from jaxcal import cli
+    from jaxcal.commands import info
+
+    def fail(args):
+        raise exc
+
+    monkeypatch.setattr(info, "run", fail)
+    monkeypatch.delenv("JAXCAL_DEBUG", raising=False)
+    assert cli.main(["info", "x.h5"]) == code
+    err = capsys.readouterr().err
+    assert err.startswith(head) and err.count("\n") == 1

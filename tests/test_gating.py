@@ -240,7 +240,7 @@ def test_cli_simulate_end_to_end_and_reader(tmp_path):
         assert f["candidates/index"].shape == (60, 3)
         assert f["position"].shape == (60, 3)
     # the contract ranges, assigned by time window, equal the simulated per-query ranges
-    from jaxcal.commands.gate import read_queries
+    from jaxcal.io.places import read_queries
 
     _, r, ids, _, truth = read_queries(str(tmp_path / "places_queries.h5"), 0.1)
     sc = simulate_places(

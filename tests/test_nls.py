@@ -6,7 +6,7 @@ import pytest
 from conftest import assert_one_line_error, run_cli
 from jaxcal.data import TrajectoryDataset
 from jaxcal.io import hdf5
-from jaxcal.trajectory import ls, nls
+from jaxcal.trajectory import common, ls, nls
 from jaxcal.trajectory.poses import estimate_time_offset, fit_poses
 
 
@@ -164,17 +164,17 @@ def test_height_from_a_flat_path_is_nan_with_one_warning_line(caplog):
     # an anchor near the plane of a flat path: its height enters the ranges only to second order
     # (h / r small everywhere) and trades off with the range bias; 3 m above it, it is fixed
     low, high = np.array([1.0, 1.0, 0.1]), np.array([8.0, 0.0, 3.0])
-    assert ls.height_dop_ratio(flat, low) > 10 > 5 * ls.height_dop_ratio(flat, high)
+    assert common.height_dop_ratio(flat, low) > 10 > 5 * common.height_dop_ratio(flat, high)
     pos = np.stack([flat, flat, hilly])
     est = np.stack([low, high, low])
     rng = np.linalg.norm(pos - est[:, None], axis=-1)
     groups = SimpleNamespace(position=pos, range=rng, mask=np.ones(rng.shape, bool))
     p = nls.NLSParams()
-    flag, zstd = ls.unobservable_height(groups, est, p)
+    flag, zstd = common.unobservable_height(groups, est, p)
     assert flag.tolist() == [True, False, False] and zstd[0] == 0.0
     ds = SimpleNamespace(anchor_ids=["low", "high", "hilly"], name="t")
     with caplog.at_level("WARNING", logger="jaxcal"):
-        res = ls.finish(ds, "nls", p, groups, est, np.repeat(np.eye(3)[None], 3, 0) * 0.01, {})
+        res = common.finish(ds, "nls", p, groups, est, np.repeat(np.eye(3)[None], 3, 0) * 0.01, {})
     assert np.isnan(res.position[0, 2]) and np.isfinite(res.position[0, :2]).all()
     assert np.isnan(res.covariance[0, 2]).all() and np.isfinite(res.covariance[0, :2, :2]).all()
     assert np.isfinite(res.position[1:]).all()

@@ -3,9 +3,10 @@
 Each subcommand lives in `jaxcal.commands.<module>` with two functions: `add_arguments(parser)` (cheap:
 no heavy imports at module level, so `jaxcal --help` stays fast) and `run(args) -> int`.
 
-Errors: bad input (`JaxcalError`, a missing file, a bad value) prints one line `jaxcal: error: ...` on
-stderr and exits 2; an unexpected failure prints one line and exits 1. Set `JAXCAL_DEBUG=1` for the
-traceback.
+Errors: bad input (`JaxcalError` and its `InputError`, `DataError`, `FormatError`; a missing or unreadable
+file) prints one line `jaxcal: error: ...` on stderr and exits 2; an unexpected failure (a plain `ValueError`
+from deep inside included: it is a bug, not the user's input) prints one line `jaxcal: internal error: ...`
+and exits 1. Set `JAXCAL_DEBUG=1` for the traceback.
 
 Signals: SIGINT (Ctrl-C) and SIGTERM end any command at any moment with one line and exit status 130
 (143). They are blocked in every thread and taken by one watcher thread (`signal.sigwait`), which removes
@@ -172,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except BrokenPipeError:
         return 0
-    except (JaxcalError, FileNotFoundError, IsADirectoryError, PermissionError, ValueError) as e:
+    except (JaxcalError, FileNotFoundError, IsADirectoryError, PermissionError) as e:
         if debug:
             raise
         if isinstance(e, FileNotFoundError) and e.filename:

@@ -34,6 +34,7 @@ __all__ = [
     "covariance_consistency",
     "evaluate_trajectory",
     "evaluate",
+    "place_success",
 ]
 
 # Probability mass within 1, 2, 3 standard deviations of a Gaussian: Table I's "1 sigma" ... quantiles.
@@ -453,3 +454,23 @@ def evaluate(result: Result, dataset: MeshDataset | TrajectoryDataset) -> dict:
     if isinstance(dataset, MeshDataset):
         return evaluate_mesh(result, dataset)
     return evaluate_trajectory(result, dataset)
+
+
+PLACE_SUCCESS_RADIUS_M = 8.5  # the match criterion of the place-recognition paper (Section IV-E)
+
+
+def place_success(best: np.ndarray, truth: np.ndarray, radius_m: float = PLACE_SUCCESS_RADIUS_M):
+    """Place-recognition success: the share of queries with a known position whose best candidate lies
+    within `radius_m` of it, and the mean error [m] of those hits (NaN when none).
+
+    Args:
+        best: (Q, D) best candidate position per query [m] (NaN = no candidate: a miss).
+        truth: (Q, D) true query positions [m] (a NaN row = unknown, not counted).
+
+    Returns:
+        (success rate in [0, 1], mean error of the hits [m]).
+    """
+    known = np.isfinite(truth).all(axis=1)
+    err = np.linalg.norm(best - truth, axis=1)
+    hit = known & (err < radius_m)
+    return float(hit.sum() / max(known.sum(), 1)), float(np.mean(err[hit])) if hit.any() else float("nan")

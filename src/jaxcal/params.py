@@ -48,6 +48,8 @@ def load_params_json(path: str | Path) -> dict[str, Any]:
 
 
 def _cast(key: str, default: Any, value: Any) -> Any:
+    if getattr(default, "ndim", None) == 0 and hasattr(default, "item"):
+        default = default.item()  # a 0-d array default (an eqx.Module field with an array converter)
     if isinstance(value, str):
         text = value
         if isinstance(default, bool):

@@ -30,7 +30,7 @@ Execution (`SweepSpec.execution`, `jaxcal sweep --execution`), chosen per backen
   runs in lockstep chunks (`mesh.lockstep`): the host decides each step's branch for the whole
   batch (a window-only chunk for the runs whose windows hold, a full-grid epoch only for the runs
   that need one), so runs do not pay the full grid at every epoch. The one-scan likelihoods
-  ("direct", "dense") and multi-process sweeps run one vmapped `pgp._filter` per batch (both
+  ("direct", "dense") and multi-process sweeps run one vmapped `pgp.run_filter` per batch (both
   branches of every cond). Same metrics as "sequential" up to rounding;
   `benchmarks/sweep_batching.py` measures runs/s against batch size.
 
@@ -181,7 +181,7 @@ def parse_spec(doc: Mapping) -> SweepSpec:
             f"grid.{name}: a list of numbers",
         )
         for v in vals:  # the same range checks as a single run
-            pgp._validate(with_overrides(pgp.PGPParams(), {**params, name: float(v)}))
+            pgp.validate_params(with_overrides(pgp.PGPParams(), {**params, name: float(v)}))
         grid.append((name, tuple(float(v) for v in vals)))
     scen = doc.get("scenarios", [])
     _need(isinstance(scen, list) and len(scen) >= 1, "at least one [[scenarios]] table")
@@ -324,7 +324,7 @@ def run_metrics(
     span_m: float,
 ) -> dict[str, Float[Array, ""]]:
     """Run the filter once and reduce it to the sweep's metrics (one run; `run_batch` vmaps it)."""
-    _, out = pgp._filter(cfg, prm, inp, logpost0)
+    _, out = pgp.run_filter(cfg, prm, inp, logpost0)
     return reduce_metrics(out, prm, truth, span_m)
 
 

@@ -48,6 +48,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float, Int
 
+from jaxcal import solver as S
 from jaxcal.data import MeshDataset, Result
 from jaxcal.errors import JaxcalError
 from jaxcal.mesh import mds
@@ -56,7 +57,8 @@ from jaxcal.mesh.pair_covariance import pair_covariance, pair_spread
 from jaxcal.params import as_dict, with_overrides
 from jaxcal.precision import in_float64
 
-__all__ = ["BatchParams", "Observations", "BatchSolution", "observations", "solve", "calibrate", "LOSSES"]
+__all__ = ["BatchParams", "Observations", "BatchSolution", "observations", "solve", "check_solver", "calibrate",
+           "LOSSES"]
 
 LOSSES = ("l2", "huber", "cauchy", "mixture")
 BIASES = ("auto", "none", "network", "node")
@@ -205,6 +207,9 @@ class BatchSolution(eqx.Module):
         model_covariance: (N, D, D) the model's own covariance before the pair-level covariance
             (`pair_covariance`) widened it (posterior sample covariance with `estimate=mean`, the Laplace
             covariance otherwise).
+        solver_codes: outcome codes (`jaxcal.solver.outcome`) of the fit the answer rests on (the chosen
+            start, relocation, offset refit or all-ranges refinement, whichever came last), then of the
+            offset bootstrap's replicate fits (`bias=auto`).
     """
 
     position: np.ndarray
@@ -221,6 +226,7 @@ class BatchSolution(eqx.Module):
     estimate: str = "map"
     fallback_reason: str = ""
     model_covariance: np.ndarray | None = None
+    solver_codes: np.ndarray = eqx.field(default_factory=lambda: np.zeros(0, dtype=int))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -444,7 +450,8 @@ def _initial_starts(d_pair: Array, w_pair: Array, key: Array, dim: int, init: st
 @eqx.filter_jit
 def _fit_starts(y0s: _State, obs: Observations, nb: _Numbers, solver: str, tol: float, max_steps: int,
                 factors: Array | None = None):
-    """Refine every start (a batched `_State`; vmapped least squares); returns final states and costs.
+    """Refine every start (a batched `_State`; vmapped least squares); returns final states, costs and
+    the outcome codes of their last fits (`jaxcal.solver.outcome`).
 
     With `factors` (G,) the loss scale is graduated (graduated non-convexity): the fit is solved
     with sigma_r * factors[0], ..., sigma_r * factors[-1] in turn, each warm-started from the last. A wide
@@ -459,10 +466,10 @@ def _fit_starts(y0s: _State, obs: Observations, nb: _Numbers, solver: str, tol: 
             nbk = eqx.tree_at(lambda t: t.sigma_r, nb, nb.sigma_r * factor)
             sol = optx.least_squares(_residuals, _solver(solver, tol), y, (obs, nbk), max_steps=max_steps,
                                      throw=False)
-            return sol.value, None
+            return sol.value, S.outcome(sol)
 
-        y, _ = jax.lax.scan(stage, y0, factors)
-        return y, _cost(y, args)
+        y, codes = jax.lax.scan(stage, y0, factors)
+        return y, _cost(y, args), codes[-1]
 
     return jax.vmap(one)(y0s)
 
@@ -495,7 +502,8 @@ def offset_bootstrap(state: _State, obs: Observations, nb: _Numbers, key: Array,
         key: PRNG key; n_boot: replicates (static).
 
     Returns:
-        (2,) RMSE [m] of (with offset, without offset), averaged over the replicates.
+        ((2,) RMSE [m] of (with offset, without offset), averaged over the replicates; (n_boot, 2) outcome
+        codes of the replicate fits (`jaxcal.solver.outcome`)).
     """
     e = _errors(state, obs, nb)
     model = obs.z - e
@@ -518,11 +526,12 @@ def offset_bootstrap(state: _State, obs: Observations, nb: _Numbers, key: Array,
         def fit(y0, nbk):
             sol = optx.least_squares(_residuals, _solver(solver, tol), y0, (obs_b, nbk), max_steps=max_steps,
                                      throw=False)
-            return _procrustes_rmse(sol.value.x, state.x) ** 2
+            return _procrustes_rmse(sol.value.x, state.x) ** 2, S.outcome(sol)
 
-        return jnp.stack([fit(state, nb), fit(start_none, nb_none)])
+        return jax.tree.map(lambda *a: jnp.stack(a), fit(state, nb), fit(start_none, nb_none))
 
-    return jnp.sqrt(jnp.mean(jax.vmap(one)(jax.random.split(key, n_boot)), axis=0))
+    sq, codes = jax.vmap(one)(jax.random.split(key, n_boot))
+    return jnp.sqrt(jnp.mean(sq, axis=0)), codes
 
 
 @eqx.filter_jit
@@ -562,7 +571,8 @@ def _irls_all(y0: _State, obs: Observations, pair_i: Array, pair_j: Array, pair_
 
     With fixed weights w_k the cost of a pair's ranges, sum_k w_k (z_k - m)^2, equals
     W (zbar - m)^2 + const with W = sum_k w_k and zbar the weighted mean, so each inner
-    least-squares problem has one residual per pair whatever the number of epochs.
+    least-squares problem has one residual per pair whatever the number of epochs. Returns the state
+    and the outcome code of the last round's fit (`jaxcal.solver.outcome`).
     """
     n_pairs = pair_i.shape[0]
 
@@ -574,10 +584,10 @@ def _irls_all(y0: _State, obs: Observations, pair_i: Array, pair_j: Array, pair_
         pairs = Observations(pair_i, pair_j, zbar, wsum)
         sol = optx.least_squares(_residuals, _solver(solver, tol), state, (pairs, nb.with_loss("l2")),
                                  max_steps=max_steps, throw=False)
-        return sol.value, None
+        return sol.value, S.outcome(sol)
 
-    state, _ = jax.lax.scan(step, y0, None, length=n_iter)
-    return state
+    state, codes = jax.lax.scan(step, y0, None, length=n_iter)
+    return state, codes[-1]
 
 
 @eqx.filter_jit
@@ -980,10 +990,10 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     s_count = x0s.shape[0]
     y0s = _State(x0s, jnp.zeros(s_count), jnp.zeros((s_count, m)))
     gnc = jnp.asarray(2.0 ** np.arange(p.gnc_stages - 1, -1, -1), dtype=float)
-    states, costs = _fit_starts(y0s, obs_med, nb, p.solver, p.tol, p.max_steps, gnc)
+    states, costs, fit_codes = _fit_starts(y0s, obs_med, nb, p.solver, p.tol, p.max_steps, gnc)
     costs = np.where(np.isfinite(np.asarray(costs)), np.asarray(costs), np.inf)
     best = int(np.argmin(costs))
-    state = jax.tree.map(lambda a: a[best], states)
+    state, code = jax.tree.map(lambda a: a[best], states), fit_codes[best]  # code: of the fit `state` is
     cost = float(costs[best])
     done(1)
     d_j, w_j = jnp.asarray(np.nan_to_num(d_pair)), jnp.asarray(w_pair)
@@ -992,25 +1002,25 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         starts = _relocation_starts(state, d_j, w_j, nb, grid_n)
         # same batch size and stage count as the multi-start fit: one compilation serves both
         starts = jax.tree.map(lambda a: jnp.concatenate([a, a[:1].repeat(s_count - m, axis=0)]), starts)
-        moved, moved_costs = _fit_starts(starts, obs_med, nb, p.solver, p.tol, p.max_steps,
-                                         jnp.ones_like(gnc))
+        moved, moved_costs, moved_codes = _fit_starts(starts, obs_med, nb, p.solver, p.tol, p.max_steps,
+                                                      jnp.ones_like(gnc))
         moved_costs = np.where(np.isfinite(np.asarray(moved_costs)), np.asarray(moved_costs), np.inf)
         k = int(np.argmin(moved_costs))
         if not moved_costs[k] < cost - 1e-9 * max(1.0, abs(cost)):
             break
-        state, cost = jax.tree.map(lambda a: a[k], moved), float(moved_costs[k])
+        state, cost, code = jax.tree.map(lambda a: a[k], moved), float(moved_costs[k]), moved_codes[k]
     done(1)
-    chosen, boot = ("network" if p.bias == "auto" else p.bias), np.full(2, np.nan)
+    chosen, boot, boot_codes = ("network" if p.bias == "auto" else p.bias), np.full(2, np.nan), np.zeros(0)
     if p.bias == "auto":
-        boot = np.asarray(offset_bootstrap(state, obs_med, nb, jax.random.fold_in(key, 7), p.n_boot, p.solver,
-                                           p.tol, p.max_steps))
+        boot, boot_codes = (np.asarray(a) for a in offset_bootstrap(
+            state, obs_med, nb, jax.random.fold_in(key, 7), p.n_boot, p.solver, p.tol, p.max_steps))
         if boot[1] < boot[0]:  # leaving the offset out is predicted to place the nodes better
             chosen = "none"
             nb = eqx.tree_at(lambda t: t.use_c, nb, jnp.zeros_like(nb.use_c))
             start = eqx.tree_at(lambda t: t.c, state, jnp.zeros_like(state.c))
             starts = jax.tree.map(lambda a: jnp.repeat(a[None], s_count, axis=0), start)
-            refit, _ = _fit_starts(starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc))
-            state = jax.tree.map(lambda a: a[0], refit)
+            refit, _, refit_codes = _fit_starts(starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc))
+            state, code = jax.tree.map(lambda a: a[0], refit), refit_codes[0]
         done(1)
     obs = obs_pairs = obs_med  # obs_pairs: what the posterior of estimate=mean sees, one per pair
     if p.summary == "all":
@@ -1021,8 +1031,8 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         uniq, pair_of_obs = np.unique(key_pair, return_inverse=True)
         size = _bucket(uniq.size)
         pair_i, pair_j = jnp.asarray(_pad(uniq // m, size)), jnp.asarray(_pad(uniq % m, size))
-        state = _irls_all(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb, p.solver, p.tol,
-                          p.max_steps, p.irls_iters)
+        state, code = _irls_all(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb, p.solver, p.tol,
+                                p.max_steps, p.irls_iters)
         if p.estimate == "mean":  # the posterior's pair observations: where the all-ranges fit puts them
             obs_pairs = _pair_locations(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb)
         jax.block_until_ready(state.x)
@@ -1109,7 +1119,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         offset_m=offset if chosen != "none" else 0.0, node_offset_m=node_off,
         cost=cost, start_costs=costs, residual_sigma_m=float(np.sqrt(s2)), bias=chosen, boot_rmse_m=boot,
         mcmc_accept=accept, mcmc_rhat=rhat, estimate=used, fallback_reason=reason,
-        model_covariance=per_node(cov_model),
+        model_covariance=per_node(cov_model), solver_codes=np.append(np.asarray(code), boot_codes).astype(int),
     )
 
 
@@ -1141,6 +1151,14 @@ def warn_if_unmixed(sol: BatchSolution, p: BatchParams) -> bool:
     return True
 
 
+def check_solver(sol: BatchSolution, p: BatchParams, method: str = "batch") -> S.SolverReport:
+    """The outcome of the fits `sol` rests on (`BatchSolution.solver_codes`), with one warning line (logger
+    `jaxcal`) when one of them did not converge; its `params()` go into the Result params."""
+    rep = S.report(sol.solver_codes, "fits")
+    rep.warn(method, f"raise max_steps (now {p.max_steps}) or tol (now {p.tol:g})")
+    return rep
+
+
 def calibrate(dataset: MeshDataset, params=None, config: str | None = None,
               progress: Callable[[int], None] | None = None) -> Result:
     """`--method batch`: robust batch calibration of a static mesh (see the module docstring).
@@ -1165,10 +1183,11 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None,
         return empty
     sol = solve(dataset.range, anchors, p, dataset.node_ids, progress=progress)
     warn_if_unmixed(sol, p)
+    outcome = check_solver(sol, p)
     p = eqx.tree_at(lambda q: (q.bias, q.estimate), p, (sol.bias, sol.estimate))  # record what was used
     res = Result(
         ids=dataset.node_ids, position=sol.position, method="batch", dataset=dataset.name,
-        frame="anchors:" + ",".join(str(a) for a in anchors), params=as_dict(p),
+        frame="anchors:" + ",".join(str(a) for a in anchors), params={**as_dict(p), **outcome.params()},
         covariance=sol.covariance, software=f"jaxcal {__version__}",
     )
     # nodes the measured graph cannot fix (one neighbour, a flexible part) become NaN rows + a warning

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxcal.errors import InputError
+
 __all__ = ["to_frame", "to_frame_track", "frame_covariance", "align_rigid", "apply_rigid"]
 
 
@@ -27,12 +29,12 @@ def to_frame(points: np.ndarray, a0: int, a1: int, a2: int) -> np.ndarray:
     p = np.asarray(points, dtype=np.float64)
     d = p.shape[1]
     if d not in (2, 3):
-        raise ValueError(f"points must be (N, 2) or (N, 3), got {p.shape}")
+        raise InputError(f"points must be (N, 2) or (N, 3), got {p.shape}")
     o = p[a0]
     ex = p[a1] - o
     nx = np.linalg.norm(ex)
     if not np.isfinite(nx) or nx == 0:
-        raise ValueError(f"frame undefined: a0 (row {a0}) and a1 (row {a1}) coincide or are unknown")
+        raise InputError(f"frame undefined: a0 (row {a0}) and a1 (row {a1}) coincide or are unknown")
     ex = ex / nx
     v2 = p[a2] - o
     if d == 2:
@@ -40,13 +42,13 @@ def to_frame(points: np.ndarray, a0: int, a1: int, a2: int) -> np.ndarray:
         if v2 @ ey < 0:
             ey = -ey
         if abs(v2 @ ey) < 1e-12:
-            raise ValueError("frame undefined: a0, a1, a2 are collinear")
+            raise InputError("frame undefined: a0, a1, a2 are collinear")
         rot = np.stack([ex, ey])  # rows: new axes
     else:
         ey = v2 - (v2 @ ex) * ex
         ny = np.linalg.norm(ey)
         if not np.isfinite(ny) or ny < 1e-12:
-            raise ValueError("frame undefined: a0, a1, a2 are collinear or unknown")
+            raise InputError("frame undefined: a0, a1, a2 are collinear or unknown")
         ey = ey / ny
         ez = np.cross(ex, ey)
         rot = np.stack([ex, ey, ez])

@@ -83,6 +83,7 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
     res_pgp, _ = pgp.run_pgp(dataset, p_over, config)
     sol = batch.solve(dataset.range, anchors, b, dataset.node_ids, extra_starts=res_pgp.position[None])
     batch.warn_if_unmixed(sol, b)
+    outcome = batch.check_solver(sol, b, "pgp+batch")
     # record what was used: bias=auto resolved, estimate=mean or its fallback to the fit
     b = eqx.tree_at(lambda q: (q.bias, q.estimate), b, (sol.bias, sol.estimate))
     position = sol.position
@@ -102,7 +103,7 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
         ids=dataset.node_ids, position=position, method="pgp+batch", dataset=dataset.name,
         frame="anchors:" + ",".join(str(a) for a in anchors),
         params={**{f"pgp.{k}": v for k, v in res_pgp.params.items()},
-                **{f"batch.{k}": v for k, v in as_dict(b).items()}},
+                **{f"batch.{k}": v for k, v in {**as_dict(b), **outcome.params()}.items()}},
         covariance=covariance,
         track_time=res_pgp.track_time if track_position is not None else None,
         track_position=track_position, software=f"jaxcal {__version__}",

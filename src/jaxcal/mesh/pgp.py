@@ -82,6 +82,8 @@ __all__ = [
     "advance",
     "stream_posterior",
     "symmetric_ranges",
+    "validate_params",
+    "run_filter",
 ]
 
 
@@ -183,7 +185,9 @@ NUMERIC = (
 )
 
 
-def _validate(p: PGPParams) -> None:
+def validate_params(p: PGPParams) -> None:
+    """Raise a one-line `JaxcalError` naming the first parameter of `p` out of its range."""
+
     def need(ok: bool, msg: str) -> None:
         if not ok:
             raise JaxcalError(f"parameter {msg}")
@@ -762,6 +766,8 @@ def _filter(
 
 
 run_filter = eqx.filter_jit(_filter)
+"""The recursive filter, jitted (`eqx.filter_jit`): (cfg, prm, inp, logpost0) -> (final FilterState,
+per-epoch FilterOut); tuning and sweeps call it (also inside their own vmap / jit)."""
 _scan_jit = eqx.filter_jit(_scan)
 
 
@@ -1036,7 +1042,7 @@ def prepare(
     Returns:
         (cfg, prm, inp, logpost0, order) where `order[k]` is the dataset index of filter node k.
     """
-    _validate(params)
+    validate_params(params)
     n = dataset.n_nodes
     order = _node_order(n, dataset.config(config) if anchors is None else anchors)
     z = symmetric_ranges(np.asarray(dataset.range, dtype=np.float64))[:, order][:, :, order]
@@ -1090,7 +1096,7 @@ def start(
     """
     if not isinstance(params, PGPParams):
         params = with_overrides(PGPParams(), params)
-    _validate(params)
+    validate_params(params)
     order = _node_order(int(n_nodes), anchors)
     radius = params.extent_m if radius_m is None else float(radius_m)
     if not (math.isfinite(radius) and radius > 0):

@@ -30,6 +30,7 @@ from __future__ import annotations
 import equinox as eqx
 import numpy as np
 
+from jaxcal.errors import InputError
 from jaxcal.sim.channel import ChannelModel, sample_range_errors
 
 __all__ = ["PlaceConfig", "PlaceScene", "simulate_places", "perturb_anchors"]
@@ -171,7 +172,7 @@ def simulate_places(
     cfg = PlaceConfig() if config is None else config
     channel = ChannelModel() if channel is None else channel
     if n_queries < 1:
-        raise ValueError(f"n_queries must be >= 1, got {n_queries}")
+        raise InputError(f"n_queries must be >= 1, got {n_queries}")
     rng = np.random.default_rng(seed)
     f = cfg.descriptor_dim
     rep_field = _Field(rng, 4, f, 1.0)
@@ -198,7 +199,7 @@ def simulate_places(
     else:
         anchors = np.asarray(anchors, dtype=np.float64)
         if anchors.ndim != 2 or anchors.shape[1] != 3 or not np.all(np.isfinite(anchors)):
-            raise ValueError(
+            raise InputError(
                 f"anchors: expected finite (A, 3) positions, got shape {anchors.shape}"
             )
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from jaxcal.data import TrajectoryDataset
+from jaxcal.errors import InputError
 from jaxcal.sim.channel import ChannelModel, sample_range_errors
 
 __all__ = ["SCENARIOS", "simulate", "campus_layout"]
@@ -120,11 +121,11 @@ def simulate(
         TrajectoryDataset with anchor truth, per-range LOS labels and one tag.
     """
     if scenario not in SCENARIOS:
-        raise ValueError(
+        raise InputError(
             f"unknown trajectory scenario {scenario!r} (known: {', '.join(SCENARIOS)})"
         )
     if drift < 0:
-        raise ValueError(f"drift must be >= 0, got {drift}")
+        raise InputError(f"drift must be >= 0, got {drift}")
     scale, n_anchors = (1.0, 10) if scenario == "campus" else (0.1, 3)
     gen = np.random.default_rng(seed)
     wp, blocks = campus_layout(scale)

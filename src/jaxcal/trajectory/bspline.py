@@ -26,6 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from jaxcal.errors import InputError
+
 __all__ = [
     "blending_matrix",
     "cumulative_blending_matrix",
@@ -170,7 +172,7 @@ def fit_pieces(
     if x.ndim == 1:
         x = x[:, None]
     if order < 2:
-        raise ValueError(f"B-spline order must be >= 2, got {order}")
+        raise InputError(f"B-spline order must be >= 2, got {order}")
     dts = np.diff(t)
     dt = float(knot_dt_s) if knot_dt_s > 0 else float(np.median(dts)) if dts.size else 1.0
     gap = float(max_gap_s) if max_gap_s > 0 else 5.0 * dt

@@ -37,6 +37,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from jaxcal.errors import InputError
+
 __all__ = [
     "KeyframeDB",
     "Anchors",
@@ -88,17 +90,17 @@ class KeyframeDB(eqx.Module):
         pos = jnp.asarray(position)
         desc = jnp.asarray(descriptor)
         if metric not in METRICS:
-            raise ValueError(f"unknown descriptor metric {metric!r} (known: {', '.join(METRICS)})")
+            raise InputError(f"unknown descriptor metric {metric!r} (known: {', '.join(METRICS)})")
         if pos.ndim != 2 or pos.shape[1] not in (2, 3):
-            raise ValueError(f"keyframe positions: expected shape (K, 2|3), got {tuple(pos.shape)}")
+            raise InputError(f"keyframe positions: expected shape (K, 2|3), got {tuple(pos.shape)}")
         if desc.ndim != 2 or desc.shape[0] != pos.shape[0] or desc.shape[1] < 1:
-            raise ValueError(
+            raise InputError(
                 f"keyframe descriptors: expected shape ({pos.shape[0]}, F), got {tuple(desc.shape)}"
             )
         if pos.shape[0] < 1:
-            raise ValueError("keyframe database is empty")
+            raise InputError("keyframe database is empty")
         if not (bool(jnp.all(jnp.isfinite(pos))) and bool(jnp.all(jnp.isfinite(desc)))):
-            raise ValueError("keyframe positions and descriptors must be finite")
+            raise InputError("keyframe positions and descriptors must be finite")
         if not jnp.issubdtype(desc.dtype, jnp.floating):
             desc = desc.astype(jnp.float32)
         if metric == "cosine":
@@ -137,13 +139,13 @@ class Anchors(eqx.Module):
         """
         pos = np.asarray(position, dtype=np.float64)
         if pos.ndim != 2 or pos.shape[1] not in (2, 3):
-            raise ValueError(f"anchor positions: expected shape (A, 2|3), got {pos.shape}")
+            raise InputError(f"anchor positions: expected shape (A, 2|3), got {pos.shape}")
         if covariance is None:
             sigma = np.zeros(pos.shape[0])
         else:
             cov = np.asarray(covariance, dtype=np.float64)
             if cov.shape != (pos.shape[0], pos.shape[1], pos.shape[1]):
-                raise ValueError(
+                raise InputError(
                     f"anchor covariances: expected shape {(pos.shape[0],) + pos.shape[1:] * 2}, "
                     f"got {cov.shape}"
                 )
@@ -205,7 +207,7 @@ class Candidates(eqx.Module):
 
 def _check_dims(db: KeyframeDB, anchors: Anchors) -> None:
     if db.position.shape[1] != anchors.position.shape[1]:
-        raise ValueError(
+        raise InputError(
             f"keyframes are {db.position.shape[1]}-D but anchors are {anchors.position.shape[1]}-D"
         )
 
@@ -429,31 +431,31 @@ def _pow2(n: int) -> int:
 
 def _check_batch(db: KeyframeDB, anchors: Anchors, descriptors, ranges, top_k: int) -> None:
     if descriptors.ndim != 2 or descriptors.shape[1] != db.descriptor.shape[1]:
-        raise ValueError(
+        raise InputError(
             f"query descriptors: expected shape (Q, {db.descriptor.shape[1]}), "
             f"got {tuple(descriptors.shape)}"
         )
     if ranges is not None and (
         ranges.ndim != 2 or ranges.shape != (descriptors.shape[0], anchors.position.shape[0])
     ):
-        raise ValueError(
+        raise InputError(
             f"query ranges: expected shape ({descriptors.shape[0]}, {anchors.position.shape[0]}), "
             f"got {tuple(ranges.shape)}"
         )
     if not 1 <= top_k <= db.n_keyframes:
-        raise ValueError(f"top_k must be in [1, {db.n_keyframes}], got {top_k}")
+        raise InputError(f"top_k must be in [1, {db.n_keyframes}], got {top_k}")
 
 
 def search_full(db: KeyframeDB, descriptors, top_k: int = 5) -> Candidates:
     """Ungated batched search: `rank_full` vmapped over (Q, F) query descriptors."""
     descriptors = jnp.asarray(descriptors)
     if descriptors.ndim != 2 or descriptors.shape[1] != db.descriptor.shape[1]:
-        raise ValueError(
+        raise InputError(
             f"query descriptors: expected shape (Q, {db.descriptor.shape[1]}), "
             f"got {tuple(descriptors.shape)}"
         )
     if not 1 <= top_k <= db.n_keyframes:
-        raise ValueError(f"top_k must be in [1, {db.n_keyframes}], got {top_k}")
+        raise InputError(f"top_k must be in [1, {db.n_keyframes}], got {top_k}")
     return _full_batch(db, descriptors, top_k)
 
 
@@ -499,7 +501,7 @@ def search(
     out_dist = np.full((q, top_k), np.inf, np.asarray(db.descriptor).dtype)
     out_n = np.zeros(q, np.int32)
     if batch < 1:
-        raise ValueError(f"batch must be >= 1, got {batch}")
+        raise InputError(f"batch must be >= 1, got {batch}")
     pending = []  # dispatch every chunk before reading any back (JAX runs them asynchronously)
     for cap in np.unique(caps):
         sel = np.nonzero(caps == cap)[0]

@@ -25,7 +25,7 @@ Anchor search (the paper's iterative cuboid search): a regular G^3 grid in a cub
 (bounding box of the anchor's tag positions plus `margin_m`); the `top_k` (10) best grid samples are
 averaged, the cuboid is shrunk by `shrink` around that average, and this repeats until the half size
 is below `tol_m` (a static number of rounds, `lax.scan`). When an anchor's tag positions are planar
-(`ls.is_planar`), z is not observable from positions in the plane: the search runs in the
+(`common.is_planar`), z is not observable from positions in the plane: the search runs in the
 plane and the height above it is the predicted range at the found point (side `side`).
 
 Large recordings: the training set of each anchor is a stratified subsample by measured range
@@ -80,10 +80,13 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float
 
+from jaxcal import solver as S
 from jaxcal.data import Result
 from jaxcal.errors import JaxcalError
 from jaxcal.params import with_overrides
-from jaxcal.trajectory.ls import TrajectoryParams, finish, in_float64, is_planar
+from jaxcal.precision import in_float64
+from jaxcal.trajectory.common import TrajectoryParams, finish, is_planar, report_fits
+from jaxcal.trajectory.poses import prepare_poses
 
 __all__ = [
     "GPParams",
@@ -292,6 +295,11 @@ def fit_hyper(x, y, mask, init: Hyper, nu: float = 1.5, jitter: float = 1e-6, ma
     Args:
         x: (n, 3) [m]. y: (n,) centred targets. mask: (n,). init: starting point.
     """
+    return _fit_hyper(x, y, mask, init, nu, jitter, max_steps)[0]
+
+
+def _fit_hyper(x, y, mask, init: Hyper, nu: float, jitter: float, max_steps: int):
+    """`fit_hyper` plus the outcome code of the BFGS fit (`jaxcal.solver.outcome`): (Hyper, code)."""
 
     def loss(h, _):
         # The objective is scaled by 1/n so that the BFGS tolerances mean the same for any n.
@@ -302,7 +310,7 @@ def fit_hyper(x, y, mask, init: Hyper, nu: float = 1.5, jitter: float = 1e-6, ma
     solver = optx.BFGS(rtol=1e-6, atol=1e-6)
     sol = optx.minimise(loss, solver, init, max_steps=max_steps, throw=False)
     ok = jnp.isfinite(loss(sol.value, None))
-    return jax.tree.map(lambda a, b: jnp.where(ok, a, b), sol.value, init)
+    return jax.tree.map(lambda a, b: jnp.where(ok, a, b), sol.value, init), S.outcome(sol)
 
 
 class _Posterior(eqx.Module):
@@ -523,7 +531,7 @@ def _calibrate_all(x, r, mask, centre, half, planar, p: GPParams, n_rounds: int,
         var_y = jnp.maximum(jnp.sum(yc**2) / n, 1e-6)
         ext = jnp.max(jnp.where(m[:, None], jnp.abs(xc), 0.0))
         init = Hyper(jnp.log(jnp.maximum(0.3 * ext, 1e-2)), jnp.log(var_y), jnp.log(0.01 * var_y))
-        h = fit_hyper(xc, yc, m, init, p.nu, p.jitter, p.max_steps)
+        h, code = _fit_hyper(xc, yc, m, init, p.nu, p.jitter, p.max_steps)
         post = _posterior(h, xc, yc, m, mean, p.nu, p.jitter)
         est, cov = search_anchor(
             post, c0 - origin, h0, p.target, p.grid, p.top_k, p.shrink, n_rounds, grid_z
@@ -550,7 +558,7 @@ def _calibrate_all(x, r, mask, centre, half, planar, p: GPParams, n_rounds: int,
             mu, var = predict(post, pt_g[None], with_var=True)
             sd = jnp.minimum(_range_sd(mu[0], var[0], p.target), r_max)
             est, cov = options[best], cov_g
-        return est + origin, cov + sd**2 * jnp.eye(3), h
+        return est + origin, cov + sd**2 * jnp.eye(3), h, code
 
     # lax.map, not vmap: batched triangular solves (Cholesky gradients) are far slower on CPU than a
     # sequence of unbatched ones; the anchors are independent either way.
@@ -583,7 +591,7 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
         raise JaxcalError(
             "parameters grid >= 2, 1 <= top_k <= grid^2, 0 < shrink < 1, tol_m > 0 required"
         )
-    groups, info = p.prepare_poses(dataset)
+    groups, info = prepare_poses(dataset, p)
     pos = np.asarray(groups.position)
     rng_m = np.asarray(groups.range)
     mask = np.asarray(groups.mask)
@@ -642,16 +650,9 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
             n_rounds = max(
                 1, int(math.ceil(math.log(half.max() / p.tol_m) / math.log(1.0 / p.shrink)))
             )
-        est, cov, hyp = _calibrate_all(
-            jnp.asarray(x),
-            jnp.asarray(r),
-            jnp.asarray(m),
-            jnp.asarray(centre),
-            jnp.asarray(half),
-            jnp.asarray(planar),
-            p,
-            n_rounds,
-            grid_z,
+        args = tuple(jnp.asarray(a) for a in (x, r, m, centre, half, planar))
+        (est, cov, hyp, codes), codes, steps = S.retry_unconverged(
+            lambda k: _fit_stage(args, eqx.tree_at(lambda q: q.max_steps, p, k), n_rounds, grid_z), p.max_steps
         )
         if progress is not None:
             jax.block_until_ready(est)
@@ -665,7 +666,14 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
         noise_var=np.exp(np.asarray(hyp.log_noise)).tolist(),
     )
     kept = AnchorRanges(groups.position, groups.range, groups.mask)
-    return finish(dataset, "gp", p, kept, est, cov, info)
+    hint = f"raise max_steps (now {p.max_steps}; retried with {steps}) of the hyperparameter fit"
+    return finish(dataset, "gp", p, kept, est, cov, info, report_fits("gp", codes, groups, p, hint))
+
+
+def _fit_stage(args, p: GPParams, n_rounds: int, grid_z: int):
+    """One stage of `_calibrate_all` for `jaxcal.solver.retry_unconverged`: (output, outcome codes)."""
+    out = _calibrate_all(*args, p, n_rounds, grid_z)
+    return out, out[3]
 
 
 # The mean-model GP lives in its own module; its public names stay importable from here.

@@ -41,8 +41,10 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float
 
+from jaxcal import solver as S
 from jaxcal.data import Result
 from jaxcal.params import with_overrides
+from jaxcal.trajectory.common import finish, report_fits
 from jaxcal.trajectory.gp import (
     Hyper,
     _cone,
@@ -50,7 +52,6 @@ from jaxcal.trajectory.gp import (
     stratified_subsample,
     to_target,
 )
-from jaxcal.trajectory.ls import finish
 
 __all__ = [
     "MeanModel",
@@ -148,6 +149,11 @@ def fit_mean_model(
     Returns:
         (fitted MeanModel, covariance (3, 3) of the anchor from the inverse Hessian of the NLML).
     """
+    return _fit_mean_model(x, r, mask, init, nu, jitter, max_steps, target, noise_scale)[:2]
+
+
+def _fit_mean_model(x, r, mask, init: MeanModel, nu, jitter, max_steps, target, noise_scale):
+    """`fit_mean_model` plus the outcome code of the BFGS fit (`jaxcal.solver.outcome`)."""
     n = jnp.maximum(jnp.sum(mask), 1)
 
     def nlml(th):
@@ -171,7 +177,7 @@ def fit_mean_model(
     # A saddle or flat direction (not a minimum) gets a large, not a negative, variance.
     w = jnp.maximum(jnp.abs(w), 1e-10 * jnp.max(jnp.abs(w)))
     cov = (v / w) @ v.T
-    return th, cov[:3, :3]
+    return th, cov[:3, :3], S.outcome(sol)
 
 
 @eqx.filter_jit
@@ -197,8 +203,8 @@ def _fit_blocks(x, r, mask, noise_scale, init_anchor, init_bias, p):
             b0,
             Hyper(jnp.log(jnp.clip(span, 0.1, 1e3)), jnp.log(0.5 * var_y), jnp.log(0.5 * var_y)),
         )
-        th, cov = fit_mean_model(xc, r, m, init, p.nu, p.jitter, p.max_steps, p.target, s)
-        return th.anchor + origin, cov, th.hyper, th.bias
+        th, cov, code = _fit_mean_model(xc, r, m, init, p.nu, p.jitter, p.max_steps, p.target, s)
+        return th.anchor + origin, cov, th.hyper, th.bias, code
 
     # lax.map, not vmap: batched Cholesky gradients are slow on CPU; anchors are independent.
     return jax.lax.map(lambda a: one(*a), (x, r, mask, noise_scale, init_anchor, init_bias))
@@ -269,9 +275,7 @@ def calibrate_anchor_mean(dataset, p, groups, info, n: int, planar) -> Result:
     from jaxcal.trajectory.poses import AnchorRanges
 
     shared = {k: getattr(p, k) for k in ("min_ranges", "planar_tol_m", "planar_ratio", "side")}
-    a0, cov0, b0 = nls._solve_all(
-        groups.position, groups.range, groups.mask, with_overrides(nls.NLSParams(), shared)
-    )
+    (a0, cov0, b0, _), nls_codes, _ = nls.solve_all_checked(groups, with_overrides(nls.NLSParams(), shared))
     pos = np.asarray(groups.position)
     rng_m = np.asarray(groups.range)
     mask = np.asarray(groups.mask)
@@ -309,15 +313,14 @@ def calibrate_anchor_mean(dataset, p, groups, info, n: int, planar) -> Result:
             w = cauchy_weights(e)[np.searchsorted(valid, sel)]
             s[a, : sel.size] = 1.0 / np.maximum(w, 1e-6)
     shape = (a_n, n_blk, m_blk)
-    est, cov, hyp, bias = _fit_blocks(
-        jnp.asarray(x.reshape(*shape, 3)),
-        jnp.asarray(r.reshape(shape)),
-        jnp.asarray(m.reshape(shape)),
-        jnp.asarray(s.reshape(shape)),
-        jnp.asarray(a0),
-        jnp.asarray(b0),
-        p,
-    )
+    args = tuple(jnp.asarray(a) for a in (x.reshape(*shape, 3), r.reshape(shape), m.reshape(shape),
+                                           s.reshape(shape), a0, b0))
+
+    def fit(steps):
+        out = _fit_blocks(*args, eqx.tree_at(lambda q: q.max_steps, p, steps))
+        return out, out[4]
+
+    (est, cov, hyp, bias, _), codes, steps = S.retry_unconverged(fit, p.max_steps)
     est, cov, bias = np.array(est), np.array(cov), np.array(bias)
     fitted = est.copy()
     spread_gp = cone_spread(pos, rng_m, mask, est)
@@ -357,4 +360,7 @@ def calibrate_anchor_mean(dataset, p, groups, info, n: int, planar) -> Result:
         noise_var=np.exp(np.asarray(hyp.log_noise)).tolist(),
     )
     kept = AnchorRanges(groups.position, groups.range, groups.mask)
-    return finish(dataset, "gp", p, kept, est, cov, info)
+    # an anchor's answer rests on both fits: the nls seed (and fallback) and the mean-model GP
+    codes = np.maximum(np.asarray(codes), np.asarray(nls_codes))
+    hint = f"raise max_steps (now {p.max_steps}; retried with {steps}) of the mean-model fit"
+    return finish(dataset, "gp", p, kept, est, cov, info, report_fits("gp", codes, kept, p, hint))

@@ -1,137 +1,25 @@
 """Linear least-squares multilateration of each anchor (the `ls` baseline, "one-key calibration").
 
-For tag positions p_i and ranges r_i, |p_i - a|^2 = r_i^2 is linear in (a, c = |a|^2):
-`-2 p_i . a + c = r_i^2 - |p_i|^2` (positions centred first for conditioning). When the tag positions
-of an anchor are (nearly) planar (`is_planar`) the z column is degenerate; then the
-2-D problem in (a_x, a_y, c' = |a_xy|^2 + h^2) is solved and the height above the platform plane is
-h = sqrt(c' - |a_xy|^2), placed on the side `side` (+1 = above the tags). The covariance is
-s^2 (A^T A)^-1 of the linear system (s^2 = residual variance of the linear equations), propagated to
-the height by the delta method in the planar case.
+The multilateration itself (`common.multilaterate`: the linear system, its planar variant and its
+covariance) is shared with `nls` (its start) and `poses` (the clock-offset search); this module is the
+method: its parameters and `calibrate`.
 """
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
-import jax.numpy as jnp
-import numpy as np
-from jaxtyping import Array, Bool, Float
 
 from jaxcal.data import Result
-from jaxcal.params import as_dict, with_overrides
+from jaxcal.params import with_overrides
 from jaxcal.precision import in_float64
+from jaxcal.trajectory.common import TrajectoryParams, finish, multilaterate_all
+from jaxcal.trajectory.poses import prepare_poses
 
-__all__ = ["LSParams", "multilaterate", "multilaterate_all", "calibrate", "in_float64"]
-
-
-class TrajectoryParams(eqx.Module):
-    """Settings shared by every trajectory method (`ls`, `nls`, `gp`): poses, planarity, clock offset.
-
-    Attributes:
-        min_ranges: anchors with fewer valid ranges get no estimate (NaN).
-        max_height_dop: an anchor whose tag positions are planar (see below) and whose height dilution of
-            precision over its horizontal one exceeds this gets a NaN height (`unobservable_height`).
-        planar_tol_m, planar_ratio: an anchor's tag positions count as planar when their z standard
-            deviation is below planar_tol_m [m] or below planar_ratio x their horizontal one.
-        side: +1 anchors above the platform plane, -1 below (planar case only).
-        order, knot_dt_s, max_gap_s: pose B-spline (order 4 = cubic; 0 = automatic).
-        time_offset_s, estimate_offset, max_offset_s: pose minus range clock offset [s] and its search.
-    """
-
-    min_ranges: int = 10
-    max_height_dop: float = 10.0
-    planar_tol_m: float = 0.3
-    planar_ratio: float = 0.05
-    side: float = 1.0
-    order: int = 4
-    knot_dt_s: float = 0.0
-    max_gap_s: float = 0.0
-    time_offset_s: float = 0.0
-    estimate_offset: bool = False
-    max_offset_s: float = 1.0
-
-    def prepare_poses(self, dataset):
-        """`poses.prepare` with these settings: (AnchorRanges, info) of a trajectory dataset."""
-        from jaxcal.trajectory.poses import prepare
-
-        return prepare(
-            dataset,
-            self.order,
-            self.knot_dt_s,
-            self.max_gap_s,
-            self.time_offset_s,
-            self.estimate_offset,
-            self.max_offset_s,
-        )
+__all__ = ["LSParams", "calibrate"]
 
 
 class LSParams(TrajectoryParams):
     """Parameters of `ls`: only the shared `TrajectoryParams` settings."""
-
-
-def _solve(a_mat, b_vec, mask):
-    w = mask.astype(a_mat.dtype)
-    ata = (a_mat * w[:, None]).T @ a_mat
-    atb = (a_mat * w[:, None]).T @ b_vec
-    ridge = 1e-10 * jnp.trace(ata) / ata.shape[0]
-    ata_r = ata + ridge * jnp.eye(ata.shape[0])
-    x = jnp.linalg.solve(ata_r, atb)
-    n = jnp.sum(w)
-    res = (a_mat @ x - b_vec) * w
-    s2 = jnp.sum(res**2) / jnp.maximum(n - a_mat.shape[1], 1.0)
-    return x, s2 * jnp.linalg.inv(ata_r)
-
-
-def multilaterate(
-    pos: Float[Array, "n 3"],
-    rng: Float[Array, " n"],
-    mask: Bool[Array, " n"],
-    planar_tol_m: float = 0.3,
-    side: float = 1.0,
-    planar_ratio: float = 0.05,
-) -> tuple[Float[Array, " 3"], Float[Array, "3 3"]]:
-    """Linear LS position [m] and covariance [m^2] of one anchor from (masked) tag positions and ranges."""
-    w = mask.astype(pos.dtype)
-    n = jnp.maximum(jnp.sum(w), 1.0)
-    centre = jnp.sum(pos * w[:, None], axis=0) / n
-    q = (pos - centre) * w[:, None]
-    zstd = jnp.sqrt(jnp.sum(q[:, 2] ** 2) / n)
-    hstd = jnp.sqrt(jnp.sum(q[:, :2] ** 2) / n)
-    rhs = rng**2 - jnp.sum(q**2, axis=-1)
-    ones = jnp.ones_like(rng)
-    # 3-D: unknowns (a, c).
-    x3, c3 = _solve(jnp.concatenate([-2.0 * q, ones[:, None]], axis=1), rhs, mask)
-    est3, cov3 = x3[:3], c3[:3, :3]
-    # Planar: unknowns (a_x, a_y, c'), height from c' - |a_xy|^2.
-    x2, c2 = _solve(
-        jnp.stack([-2.0 * q[:, 0], -2.0 * q[:, 1], ones], axis=1), rhs + q[:, 2] ** 2, mask
-    )
-    h2 = x2[2] - x2[0] ** 2 - x2[1] ** 2
-    h = jnp.sqrt(jnp.maximum(h2, 1e-6))
-    g = jnp.array([-x2[0] / h, -x2[1] / h, 0.5 / h])
-    est2 = jnp.array([x2[0], x2[1], side * h])
-    cov2 = jnp.zeros((3, 3)).at[:2, :2].set(c2[:2, :2])
-    cxz = c2[:2, :] @ g
-    cov2 = cov2.at[:2, 2].set(cxz).at[2, :2].set(cxz).at[2, 2].set(g @ c2 @ g)
-    planar = is_planar(zstd, hstd, planar_tol_m, planar_ratio)
-    est = jnp.where(planar, est2, est3) + centre
-    cov = jnp.where(planar, cov2, cov3)
-    return est, cov
-
-
-def multilaterate_all(
-    pos, rng, mask, planar_tol_m: float = 0.3, side: float = 1.0, planar_ratio: float = 0.05
-):
-    """`multilaterate` vmapped over anchors: (A, n, 3), (A, n), (A, n) -> (A, 3), (A, 3, 3)."""
-    return jax.vmap(lambda p, r, m: multilaterate(p, r, m, planar_tol_m, side, planar_ratio))(
-        pos, rng, mask
-    )
-
-
-def is_planar(z_std, h_std, planar_tol_m: float, planar_ratio: float):
-    """Whether tag positions with these z and horizontal spreads [m] count as planar (z unobservable
-    by the linear system): z spread below `planar_tol_m` or below `planar_ratio` x horizontal spread."""
-    return (z_std < planar_tol_m) | (z_std < planar_ratio * h_std)
 
 
 @in_float64
@@ -145,89 +33,8 @@ def calibrate(dataset, params=None, config=None) -> Result:
         Result with `position` (A, 3) and `covariance` (A, 3, 3); NaN for anchors with too few ranges.
     """
     p = with_overrides(LSParams(), params)
-    groups, info = p.prepare_poses(dataset)
+    groups, info = prepare_poses(dataset, p)
     est, cov = jax.jit(multilaterate_all, static_argnums=(3, 4, 5))(
         groups.position, groups.range, groups.mask, p.planar_tol_m, p.side, p.planar_ratio
     )
     return finish(dataset, "ls", p, groups, est, cov, info)
-
-
-def height_dop_ratio(tag_pos: np.ndarray, anchor: np.ndarray) -> float:
-    """sqrt(C_zz / mean(C_xx, C_yy)) of C = (J^T J)^-1, J the rows (unit vector from the tag to the anchor, 1)
-    of range-with-bias: how much worse the anchor's height is determined than its horizontal position by
-    the geometry alone. From a flat path the height enters the ranges only to second order and trades off
-    with the range bias: the ratio grows to tens (measured: 13-39 on the hanyang drives, 3-12 on the hymn
-    walks whose tag height varies by 0.5 m)."""
-    d = np.asarray(anchor, dtype=float)[None] - np.asarray(tag_pos, dtype=float)
-    r = np.linalg.norm(d, axis=1)
-    ok = r > 1e-9
-    if ok.sum() < 4:
-        return float("inf")
-    j = np.column_stack([d[ok] / r[ok, None], np.ones(int(ok.sum()))])
-    c = np.linalg.pinv(j.T @ j)
-    return float(np.sqrt(max(c[2, 2], 0.0) / max(0.5 * (c[0, 0] + c[1, 1]), 1e-300)))
-
-
-def unobservable_height(groups, est: np.ndarray, p) -> tuple[np.ndarray, np.ndarray]:
-    """Anchors whose height the platform's path cannot observe: tag positions planar (`is_planar` with
-    `p.planar_tol_m`, `p.planar_ratio`) and a height-to-horizontal DOP ratio (`height_dop_ratio`) above
-    `p.max_height_dop`. Returns ((A,) bool, (A,) z spread of the tag positions [m]).
-
-    Not caught (measured on simulated ground-vehicle campaigns): an anchor fitted on the wrong side of a
-    gently sloping path (its mirror image), whose ranges differ too little to be told apart by a simple
-    test; a robust mirror-cost comparison flagged right and wrong sides alike and was left out."""
-    pos, mask = np.asarray(groups.position), np.asarray(groups.mask)
-    out = np.zeros(est.shape[0], dtype=bool)
-    zstd = np.full(est.shape[0], np.nan)
-    for a in range(est.shape[0]):
-        q = pos[a][mask[a]]
-        if q.shape[0] < 4 or not np.isfinite(est[a]).all():
-            continue
-        zstd[a] = float(np.std(q[:, 2]))
-        hstd = float(np.sqrt(np.mean(np.sum((q[:, :2] - q[:, :2].mean(axis=0)) ** 2, axis=1))))
-        if bool(is_planar(zstd[a], hstd, p.planar_tol_m, p.planar_ratio)):
-            out[a] = height_dop_ratio(q, est[a]) > p.max_height_dop
-    return out, zstd
-
-
-def finish(dataset, method, p, groups, est, cov, info) -> Result:
-    """Build the Result: NaN rows for anchors with fewer than `p.min_ranges` ranges or failed fits; a NaN
-    height (the rest kept, one warning line) for anchors whose height the path cannot observe."""
-    import logging
-
-    from jaxcal import __version__
-
-    est = np.array(est, dtype=float)
-    cov = np.array(cov, dtype=float)
-    cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
-    count = np.asarray(groups.mask).sum(axis=1)
-    bad = (
-        (count < p.min_ranges) | ~np.isfinite(est).all(axis=1) | ~np.isfinite(cov).all(axis=(1, 2))
-    )
-    est[bad] = np.nan
-    cov[bad] = np.nan
-    flat, zstd = unobservable_height(groups, est, p)
-    if flat.any():
-        est[flat, 2] = np.nan
-        cov[flat, 2, :] = np.nan
-        cov[flat, :, 2] = np.nan
-        names = [dataset.anchor_ids[a] for a in np.flatnonzero(flat)]
-        logging.getLogger("jaxcal").warning(
-            "%s: the platform path is flat (tag height spread up to %.2f m) for %d anchor(s) (%s): the ranges "
-            "do not fix their height; left NaN, horizontal kept; survey the heights or record a path with "
-            "height changes (or raise max_height_dop)",
-            method, float(np.nanmax(zstd[flat])), len(names),
-            ", ".join(names[:8]) + (", ..." if len(names) > 8 else ""))
-    info = dict(info, unobservable_height=[dataset.anchor_ids[a] for a in np.flatnonzero(flat)])
-    params = as_dict(p)
-    params.update({f"info_{k}": v for k, v in info.items()})
-    return Result(
-        ids=dataset.anchor_ids,
-        position=est,
-        method=method,
-        dataset=dataset.name,
-        frame="world",
-        params=params,
-        covariance=cov,
-        software=f"jaxcal {__version__}",
-    )

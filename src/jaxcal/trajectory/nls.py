@@ -21,12 +21,16 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 
+from jaxcal import solver as S
 from jaxcal.data import Result
 from jaxcal.errors import JaxcalError
 from jaxcal.params import with_overrides
-from jaxcal.trajectory.ls import TrajectoryParams, finish, in_float64, multilaterate
+from jaxcal.precision import in_float64
+from jaxcal.trajectory.common import TrajectoryParams, finish, multilaterate, report_fits
+from jaxcal.trajectory.poses import prepare_poses
 
 __all__ = ["NLSParams", "solve_anchor", "calibrate"]
 
@@ -83,7 +87,7 @@ def solve_anchor(pos, rng, mask, init, p: NLSParams):
         init: (3,) initial anchor position [m]. p: parameters (static).
 
     Returns:
-        (position (3,), covariance (3, 3), bias [m]).
+        (position (3,), covariance (3, 3), bias [m], outcome code of the last round's fit (`jaxcal.solver`)).
     """
     use_bias = 1.0 if p.bias else 0.0
 
@@ -102,9 +106,9 @@ def solve_anchor(pos, rng, mask, init, p: NLSParams):
         )
         x = sol.value
         res = _dist(pos, x[:3]) + use_bias * x[3] - rng
-        return (x, _weights(res, mask, p.loss, p.loss_scale_m, p.min_scale_m)), None
+        return (x, _weights(res, mask, p.loss, p.loss_scale_m, p.min_scale_m)), S.outcome(sol)
 
-    (x, w), _ = jax.lax.scan(irls_round, (x, w), None, length=p.n_irls)
+    (x, w), codes = jax.lax.scan(irls_round, (x, w), None, length=p.n_irls)
     # Covariance from the Jacobian of the weighted residuals at the solution.
     sw = jnp.sqrt(w)
     jac = jax.jacfwd(residual)(x, sw)
@@ -118,7 +122,7 @@ def solve_anchor(pos, rng, mask, init, p: NLSParams):
     s2 = jnp.sum(r**2) / dof * jnp.sum(mask) / jnp.maximum(jnp.sum(w), 1e-12)
     cov = s2 * jnp.linalg.pinv(jtj)
     cov = robust_covariance(cov, jac, r, mask, p.n_clusters)
-    return x[:3], cov[:3, :3], x[3] * use_bias
+    return x[:3], cov[:3, :3], x[3] * use_bias, codes[-1]
 
 
 def robust_covariance(cov_model, jac_w, res_w, mask, n_clusters: int):
@@ -172,8 +176,20 @@ def calibrate(dataset, params=None, config=None) -> Result:
     p = with_overrides(NLSParams(), params)
     if p.loss not in ("cauchy", "huber", "l2"):
         raise JaxcalError(f"parameter loss: expected cauchy, huber or l2, got {p.loss!r}")
-    groups, info = p.prepare_poses(dataset)
+    groups, info = prepare_poses(dataset, p)
 
-    est, cov, bias = _solve_all(groups.position, groups.range, groups.mask, p)
+    (est, cov, bias, codes), codes, steps = solve_all_checked(groups, p)
     info = dict(info, bias_m=[float(b) for b in bias])
-    return finish(dataset, "nls", p, groups, est, cov, info)
+    hint = f"raise max_steps (now {p.max_steps}; retried with {steps}) or n_irls (now {p.n_irls})"
+    return finish(dataset, "nls", p, groups, est, cov, info, report_fits("nls", codes, groups, p, hint))
+
+
+def solve_all_checked(groups, p: NLSParams):
+    """`_solve_all` on prepared `groups`, once more with 4x `max_steps` when a fit ran out of steps
+    (`jaxcal.solver.retry_unconverged`). Returns ((position, covariance, bias, codes), codes, steps used)."""
+
+    def fit(steps):
+        out = _solve_all(groups.position, groups.range, groups.mask, eqx.tree_at(lambda q: q.max_steps, p, steps))
+        return out, out[3]
+
+    return S.retry_unconverged(fit, p.max_steps)

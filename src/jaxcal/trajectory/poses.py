@@ -22,6 +22,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from jaxcal.trajectory import bspline
+from jaxcal.trajectory.common import TrajectoryParams, multilaterate_all
 
 __all__ = [
     "AnchorRanges",
@@ -32,6 +33,8 @@ __all__ = [
     "tag_positions",
     "group_by_anchor",
     "estimate_time_offset",
+    "prepare",
+    "prepare_poses",
 ]
 
 
@@ -179,8 +182,6 @@ def group_by_anchor(
 def _offset_objective(
     model, lever_arm, range_time, range_tag, range_anchor, rng, n_anchors, n_per, offset
 ):
-    from jaxcal.trajectory.ls import multilaterate_all
-
     p = tag_positions(model, lever_arm, range_time, range_tag, offset)
     valid = jnp.isfinite(p).all(axis=1) & jnp.isfinite(rng)
     # Fixed-size per-anchor gather (static n_per) so that the objective is one traced function.
@@ -295,3 +296,10 @@ def prepare(
         "ranges_dropped": int((~ok).sum()),
     }
     return groups, info
+
+
+def prepare_poses(dataset, p: TrajectoryParams) -> tuple[AnchorRanges, dict]:
+    """`prepare` with the pose and clock settings of a trajectory method's parameters `p`."""
+    return prepare(
+        dataset, p.order, p.knot_dt_s, p.max_gap_s, p.time_offset_s, p.estimate_offset, p.max_offset_s
+    )
