@@ -81,8 +81,8 @@ def score(kf_pos, idx, truth):
 def gp_anchors(scene, seed: int):
     """Anchors calibrated by the registered GP method on the simulated prior run, or None."""
     try:
-        from jaxcal.io.places import write_places_files
         from jaxcal.io import hdf5
+        from jaxcal.io.places import write_places_files
         from jaxcal.methods import calibrate
     except Exception:  # noqa: BLE001 - the GP issue may not have landed
         return None

@@ -113,7 +113,7 @@ def test_smacof_matches_reference_and_decreases_stress(rng):
     np.testing.assert_allclose(ours, _smacof_reference(d, w, x0, 5), atol=1e-9)
     s = [float(mds.stress(mds.smacof(jnp.asarray(d), jnp.asarray(w), jnp.asarray(x0), k), d, w))
          for k in (0, 1, 5, 50)]
-    assert all(a >= b - 1e-12 for a, b in zip(s, s[1:])), s
+    assert all(a >= b - 1e-12 for a, b in zip(s, s[1:], strict=False)), s
 
 
 # -------------------------------------------------------------------------------------------- solve
@@ -285,14 +285,14 @@ def _pair_covariance_reference(jac, e, w, spread, i, j, n):
         a += w[k] * np.outer(jac[k], jac[k])
     a_inv = np.linalg.inv(a)
     proj = np.eye(m) - jac @ a_inv @ jac.T @ np.diag(w)
-    shared = np.array([[len({i[k], j[k]} & {i[l], j[l]}) for l in range(m)] for k in range(m)], float)
+    shared = np.array([[len({i[k], j[k]} & {i[q], j[q]}) for q in range(m)] for k in range(m)], float)
     comps = [np.eye(m), np.diag(spread**2), shared, np.outer(spread, spread)]
     wn = w / w.max()
     rows, ys = [], []
     for k in range(m):
-        for l in range(k, m):
-            rows.append([wn[k] * wn[l] * (proj @ v @ proj.T)[k, l] for v in comps])
-            ys.append(wn[k] * wn[l] * e[k] * e[l])
+        for q in range(k, m):
+            rows.append([wn[k] * wn[q] * (proj @ v @ proj.T)[k, q] for v in comps])
+            ys.append(wn[k] * wn[q] * e[k] * e[q])
     t = nnls(np.array(rows), np.array(ys))[0]
     sigma0 = t[0] * comps[0] + t[1] * comps[1] + t[2] * comps[2]
     pat = proj @ spread
@@ -556,7 +556,7 @@ def test_posterior_mean_equals_importance_sampling_reference(rng):
     sd = np.sqrt(np.diag(ref_cov))
     got = np.r_[sol.position[mask], sol.offset_m]
     np.testing.assert_array_less(np.abs(got - ref_mean), 0.12 * sd + 1e-9)
-    got_sd = np.sqrt(np.r_[[sol.model_covariance[k][a, a] for k, a in zip(*np.nonzero(mask))]])
+    got_sd = np.sqrt(np.r_[[sol.model_covariance[k][a, a] for k, a in zip(*np.nonzero(mask), strict=False)]])
     np.testing.assert_allclose(got_sd, sd[:-1], rtol=0.15)
     # what is reported contains the posterior (and the pair-level sandwich) in every direction
     for k in range(n):

@@ -5,9 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
+from tests.test_gp import _matern_ref, drone
 
 from jaxcal.trajectory import gp, gp_anchor
-from tests.test_gp import _matern_ref, drone
 
 SEEDS = range(20)
 

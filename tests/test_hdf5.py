@@ -5,7 +5,6 @@ import pytest
 from jaxcal.data import Result
 from jaxcal.errors import FormatError
 from jaxcal.io import hdf5
-
 from test_data import small_mesh, small_traj
 
 

@@ -9,8 +9,8 @@ import logging
 
 import numpy as np
 import pytest
-from conftest import mesh_of, random_layout, run_cli
 
+from conftest import mesh_of, random_layout, run_cli
 from jaxcal.mesh import identify as I
 from jaxcal.mesh.frame import frame_covariance, to_frame, to_frame_track
 from jaxcal.sim.families import FAMILIES, family_mesh

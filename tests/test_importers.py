@@ -13,8 +13,8 @@ import math
 
 import numpy as np
 import pytest
-from conftest import assert_one_line_error, run_cli, shared_path
 
+from conftest import assert_one_line_error, run_cli, shared_path
 from jaxcal.data import MeshDataset, TrajectoryDataset, mesh_true_distances
 from jaxcal.errors import JaxcalError
 from jaxcal.io import hdf5
@@ -172,7 +172,7 @@ def test_dwm1001_real(scenario, cfg, tmp_path):
     np.testing.assert_array_equal(ds.truth, gt[:, :2] if planar else gt)
     err = ds.range - mesh_true_distances(ds.truth)[None]
     assert abs(np.nanmedian(err)) < 0.5
-    for name, tri in ds.configs:
+    for _name, tri in ds.configs:
         assert len(set(tri)) == 3
     assert dict(ds.configs).keys() <= {"conf1", "conf2"}
     assert ds.license and "local use only" in ds.license and "esauortiz" in ds.source
@@ -217,7 +217,7 @@ def test_hymn_real(tmp_path):
         rows = list(csv.DictReader(f))
     n_finite = sum(not math.isnan(float(v)) for r in rows for v in _pylist(r["ranges"]))
     assert ds.n_ranges == n_finite
-    dwells = 1 + sum(a["point_id"] != b["point_id"] for a, b in zip(rows, rows[1:]))
+    dwells = 1 + sum(a["point_id"] != b["point_id"] for a, b in zip(rows, rows[1:], strict=False))
     assert ds.pose_time.shape[0] == 2 * dwells
     assert ds.anchor_ids == tuple(f"UWB_{i:02d}" for i in range(1, 11))
     with open(root / "data/reference/csv/anchor_coordinates.csv", newline="") as f:
@@ -226,7 +226,7 @@ def test_hymn_real(tmp_path):
     # first row: time, first range and tag position as in uwb.csv
     r0 = rows[0]
     assert ds.range_time[0] == int(r0["ts"]) / 1000
-    first = next((a, float(v)) for a, v in zip(_pylist(r0["anchor_ids"]), _pylist(r0["ranges"])) if v != "nan")
+    first = next((a, float(v)) for a, v in zip(_pylist(r0["anchor_ids"]), _pylist(r0["ranges"]), strict=False) if v != "nan")
     assert ds.anchor_ids[ds.range_anchor[0]] == first[0] and ds.range[0] == np.float32(first[1])
     np.testing.assert_allclose(ds.pose_position[0], [float(r0[c]) for c in ("X_LOCAL_UWB", "Y_LOCAL_UWB",
                                                                              "Z_LOCAL_UWB")])
@@ -242,7 +242,7 @@ def test_hymn_real(tmp_path):
 def _wallclock(s):
     d, t = s.split(" ")
     h, m, sec = t.split(":")
-    day = dt.datetime.strptime(d, "%Y-%m-%d").replace(tzinfo=dt.timezone.utc).timestamp()
+    day = dt.datetime.strptime(d, "%Y-%m-%d").replace(tzinfo=dt.UTC).timestamp()
     return day + int(h) * 3600 + int(m) * 60 + float(sec)
 
 
@@ -274,7 +274,7 @@ def test_cuhksz_real(cuhksz, tmp_path):
     assert ds.n_ranges == int((vals > 0).sum())
     assert ds.range_time[0] == pytest.approx(_wallclock(uwb[0][0]), abs=1e-6)
     # first row, column order a0-t0, a0-t1, a0-t2, a1-t0, ...
-    first = [(a, t, ds.range[k]) for k, (a, t) in enumerate(zip(ds.range_anchor[:24], ds.range_tag[:24]))]
+    first = [(a, t, ds.range[k]) for k, (a, t) in enumerate(zip(ds.range_anchor[:24], ds.range_tag[:24], strict=False))]
     for a, t, r in first:
         assert r == np.float32(vals[0, 3 * a + t])
     with open(d / "motion_capture_dynamic_exp_mid.csv", newline="") as f:

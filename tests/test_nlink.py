@@ -29,7 +29,7 @@ def hex_file(name: str) -> bytes:
 
 
 def approx_seq(xs, ys, tol=1e-9):
-    return len(xs) == len(ys) and all(abs(x - y) <= tol for x, y in zip(xs, ys))
+    return len(xs) == len(ys) and all(abs(x - y) <= tol for x, y in zip(xs, ys, strict=False))
 
 
 # ------------------------------------------------------------------------------------- SPEC vectors
@@ -271,7 +271,7 @@ def test_chunking_does_not_change_the_result(segments, cuts):
                 max_size=10), st.integers(0, 2**31))
 def test_valid_frames_between_garbage_are_all_recovered(items, seed):
     frames = [E.random_nlink_frame(random.Random(s)) for s, _ in items]
-    data = b"".join(g + f for (_, g), f in zip(items, frames))
+    data = b"".join(g + f for (_, g), f in zip(items, frames, strict=False))
     rng = random.Random(seed)
     d, out, i = NLinkDecoder(), [], 0
     while i < len(data):

@@ -133,7 +133,7 @@ def test_trajectory_mapping_and_auto_format(tmp_path):
     assert isinstance(ds, TrajectoryDataset)
     assert ds.anchor_ids == ("A0", "A2") and ds.tag_ids == ("T1", "T2")
     assert list(ds.range_time) == [0.2, 0.5, 0.5]  # sorted by time
-    assert [(ds.anchor_ids[a], ds.tag_ids[t], float(r)) for a, t, r in zip(ds.range_anchor, ds.range_tag, ds.range)] == [
+    assert [(ds.anchor_ids[a], ds.tag_ids[t], float(r)) for a, t, r in zip(ds.range_anchor, ds.range_tag, ds.range, strict=False)] == [
         ("A2", "T2", 4.0), ("A0", "T1", 2.0), ("A2", "T1", 3.0)]
     assert rec.negative_ranges == 1
     assert "PLACEHOLDER POSES" in ds.description and np.all(ds.pose_position == 0)
@@ -459,8 +459,8 @@ def test_live_pgp_failures_keep_the_recording(tmp_path):
 
 def test_live_pgp_over_a_pty_runs_during_the_recording(tmp_path):
     """The serial path: record_serial calls the live filter at each flush while frames still arrive."""
-    from jaxcal.io.live import LiveCalibrator
     from jaxcal.io.capture import record_serial
+    from jaxcal.io.live import LiveCalibrator
 
     master, slave, port = _pty()
     data = live_capture(500, seed=7)

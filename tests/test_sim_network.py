@@ -2,8 +2,8 @@
 
 import numpy as np
 import pytest
-from conftest import assert_one_line_error, run_cli
 
+from conftest import assert_one_line_error, run_cli
 from jaxcal.errors import JaxcalError
 from jaxcal.io import hdf5
 from jaxcal.sim.mesh import simulate

@@ -90,9 +90,8 @@ def test_retry_gives_more_steps_only_when_needed():
 
 
 def test_nls_reports_unconverged_anchor_fits(caplog):
-    from test_nls import lissajous
-
     from jaxcal.trajectory import nls
+    from test_nls import lissajous
 
     ds = lissajous(noise=0.05, outliers=20)
     with caplog.at_level("WARNING", logger="jaxcal"):
@@ -111,9 +110,8 @@ def test_nls_reports_unconverged_anchor_fits(caplog):
 
 @pytest.mark.parametrize("mean", ["anchor", "constant"])
 def test_gp_reports_unconverged_hyperparameter_fits(mean, caplog):
-    from test_nls import lissajous
-
     from jaxcal.trajectory import gp
+    from test_nls import lissajous
 
     ds = lissajous(noise=0.05)
     with caplog.at_level("WARNING", logger="jaxcal"):
@@ -126,10 +124,9 @@ def test_gp_reports_unconverged_hyperparameter_fits(mean, caplog):
 @pytest.mark.parametrize("kw", [dict(summary="median"), dict(summary="all"),
                                 dict(summary="median", bias="auto")])
 def test_batch_reports_the_fits_its_answer_rests_on(kw, caplog):
-    from test_batch import FAST, random_geometry, ranges_of
-
     from jaxcal.data import MeshDataset
     from jaxcal.mesh import batch as B
+    from test_batch import FAST, random_geometry, ranges_of
 
     rng = np.random.default_rng(0)
     truth = random_geometry(rng, 2)

@@ -12,10 +12,10 @@ import pytest
 
 from conftest import assert_one_line_error, mesh_of, random_layout, run_cli
 from jaxcal import tune as T
+from jaxcal import tune_eval as E
 from jaxcal.data import MeshDataset
 from jaxcal.io import hdf5
 from jaxcal.mesh import grid as G
-from jaxcal import tune_eval as E
 from jaxcal.mesh import pgp
 from jaxcal.mesh.pgp import PGPParams
 from jaxcal.mesh.segmented import filter_segmented, segment_length

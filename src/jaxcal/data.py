@@ -41,10 +41,10 @@ def _check_shape(owner: str, field: str, arr, shape: tuple, labels: str) -> None
     """`shape` entries are ints or None (any size)."""
     if arr is None:
         return
-    ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape))
+    ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape, strict=False))
     if not ok:
         want = ", ".join(
-            lab if s is None else f"{lab}={s}" for s, lab in zip(shape, labels.split())
+            lab if s is None else f"{lab}={s}" for s, lab in zip(shape, labels.split(), strict=False)
         )
         raise DataError(
             f"{owner}.{field}: expected shape ({want}), got {_shape_str(arr.shape)}"

@@ -38,7 +38,7 @@ STALL_STEPS = 20
 T = TypeVar("T")
 
 
-def status(result) -> Int[Array, "..."]:
+def status(result) -> Int[Array, ...]:
     """Code of an Optimistix `sol.result` (batched or not, traced or not): `CONVERGED` (0), `MAX_STEPS` (1),
     `DIVERGED` (2, including non-finite values) or `FAILED` (3: a singular or broken-down linear solve)."""
     r = optx.RESULTS
@@ -48,7 +48,7 @@ def status(result) -> Int[Array, "..."]:
                      jnp.where(hit_max, MAX_STEPS, jnp.where(diverged, DIVERGED, FAILED)))
 
 
-def outcome(sol: optx.Solution) -> Int[Array, "..."]:
+def outcome(sol: optx.Solution) -> Int[Array, ...]:
     """`status` of a solution, except that a trust-region least-squares fit (Gauss-Newton,
     Levenberg-Marquardt) that reached the step limit after `STALL_STEPS` rejected steps in a row counts as
     converged.

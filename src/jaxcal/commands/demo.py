@@ -95,15 +95,13 @@ def run(args) -> int:
     import time
     from pathlib import Path
 
-    from jaxcal.commands._common import print_json
+    from jaxcal.commands._common import check_output_path, print_json
     from jaxcal.commands.stats import format_table
     from jaxcal.errors import JaxcalError
     from jaxcal.io import hdf5
+    from jaxcal.io.atomic import atomic_write_text
     from jaxcal.methods import MESH_METHODS, calibrate
     from jaxcal.metrics import evaluate, ranging_statistics
-
-    from jaxcal.commands._common import check_output_path
-    from jaxcal.io.atomic import atomic_write_text
 
     out = Path(check_output_path(args.output, folder=True).path)
     methods = [m for m in DEMO_METHODS if m in MESH_METHODS]

@@ -111,11 +111,9 @@ def run(args) -> int:
     import json
     import time
 
-    from jaxcal.commands._common import load, print_json
+    from jaxcal.commands._common import check_inputs, check_output_path, load, print_json
     from jaxcal.errors import JaxcalError
     from jaxcal.report import parse_posteriors, write_report
-
-    from jaxcal.commands._common import check_inputs, check_output_path
 
     t0 = time.perf_counter()
     check_inputs(args.files, args.truth)

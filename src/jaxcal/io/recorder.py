@@ -149,10 +149,10 @@ class Recording:
         names = ("time", "src", "dst", "range", "fp_rssi", "rx_rssi", "src_tag", "dst_tag")
         dtypes = (np.float64, np.int64, np.int64, np.float64, np.float64, np.float64, bool, bool)
         if self._cols is None:
-            self._cols = {n: np.zeros(0, d) for n, d in zip(names, dtypes)}
+            self._cols = {n: np.zeros(0, d) for n, d in zip(names, dtypes, strict=False)}
         if self._rows:
-            cols = list(zip(*self._rows))
-            self._cols = {n: np.concatenate([self._cols[n], np.asarray(c, d)]) for n, c, d in zip(names, cols, dtypes)}
+            cols = list(zip(*self._rows, strict=False))
+            self._cols = {n: np.concatenate([self._cols[n], np.asarray(c, d)]) for n, c, d in zip(names, cols, dtypes, strict=False)}
             self._rows = []
         return self._cols
 

@@ -855,7 +855,7 @@ def posterior_defect(i: np.ndarray, j: np.ndarray, n_nodes: int, dim: int, nu: f
     Returns:
         A one-line reason, or "".
     """
-    pairs = {(min(a, b), max(a, b)) for a, b in zip(np.asarray(i).tolist(), np.asarray(j).tolist()) if a != b}
+    pairs = {(min(a, b), max(a, b)) for a, b in zip(np.asarray(i).tolist(), np.asarray(j).tolist(), strict=False) if a != b}
     nbrs = [set() for _ in range(n_nodes)]
     for a, b in pairs:
         nbrs[a].add(b)
@@ -895,7 +895,7 @@ def _pad(a: np.ndarray, size: int) -> np.ndarray:
 def _active_nodes(i: np.ndarray, j: np.ndarray, n: int, a0: int) -> np.ndarray:
     """Boolean (N,) mask of the nodes connected to a0 through measured pairs."""
     adj = [[] for _ in range(n)]
-    for u, v in zip(i.tolist(), j.tolist()):
+    for u, v in zip(i.tolist(), j.tolist(), strict=False):
         adj[u].append(v)
         adj[v].append(u)
     seen = np.zeros(n, dtype=bool)
@@ -1008,7 +1008,7 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         k = int(np.argmin(moved_costs))
         if not moved_costs[k] < cost - 1e-9 * max(1.0, abs(cost)):
             break
-        state, cost, code = jax.tree.map(lambda a: a[k], moved), float(moved_costs[k]), moved_codes[k]
+        state, cost, code = jax.tree.map(lambda a, k=k: a[k], moved), float(moved_costs[k]), moved_codes[k]
     done(1)
     chosen, boot, boot_codes = ("network" if p.bias == "auto" else p.bias), np.full(2, np.nan), np.zeros(0)
     if p.bias == "auto":
@@ -1173,7 +1173,6 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None,
         A `Result` with final positions and covariances in the a0/a1/a2 frame, no track.
     """
     from jaxcal import __version__
-
     from jaxcal.mesh import identify
 
     p = with_overrides(BatchParams(), params)

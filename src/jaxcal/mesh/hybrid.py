@@ -71,7 +71,6 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
         A `Result`: refined `position` and `covariance`, PGP's per-epoch track.
     """
     from jaxcal import __version__
-
     from jaxcal.mesh import identify
 
     p_over, b_over = split_params(params)

@@ -652,7 +652,10 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
             )
         args = tuple(jnp.asarray(a) for a in (x, r, m, centre, half, planar))
         (est, cov, hyp, codes), codes, steps = S.retry_unconverged(
-            lambda k: _fit_stage(args, eqx.tree_at(lambda q: q.max_steps, p, k), n_rounds, grid_z), p.max_steps
+            lambda k, args=args, n_rounds=n_rounds: _fit_stage(
+                args, eqx.tree_at(lambda q: q.max_steps, p, k), n_rounds, grid_z
+            ),
+            p.max_steps,
         )
         if progress is not None:
             jax.block_until_ready(est)

@@ -87,7 +87,7 @@ def import_csv(path: str | os.PathLike, name: str | None = None) -> MeshDataset:
     for (t, a, b), vals in recs.items():
         e, i, j = t_idx[t], ids[a], ids[b]
         rng[e, i, j] = vals[0]
-        for c, v in zip(opt, vals[1:]):
+        for c, v in zip(opt, vals[1:], strict=False):
             if c == "los":
                 los_seen[i, j, int(v) + 1] = True
             else:

@@ -158,7 +158,7 @@ def _read_mocap(p: Path):
             if len(row) != 8:
                 raise BadCell("time", "", f"expected 8 fields, got {len(row)}")
             ti = parse_wallclock(row[0])
-            xyz = [finite(v, c) for v, c in zip(row[1:4], "xyz")]
+            xyz = [finite(v, c) for v, c in zip(row[1:4], "xyz", strict=False)]
             q = [finite(v, f"q{k}") for k, v in enumerate(row[4:8])]
             if abs(np.linalg.norm(q) - 1.0) > 1e-2:
                 raise BadCell("q0", ",".join(row[4:8]), "not a unit quaternion")

@@ -92,7 +92,7 @@ def _read_trajectory(p: Path):
             if len(row) != len(cols):
                 raise BadCell("timestamp", "", f"expected {len(cols)} fields, got {len(row)}")
             ti = finite(row[ix[0]], "timestamp") / 1e9
-            v = [finite(row[i], c) for i, c in zip(ix[1:], "xyz")]
+            v = [finite(row[i], c) for i, c in zip(ix[1:], "xyz", strict=False)]
         except BadCell as e:
             skipped.add("unparsable row", line, str(e))
             continue

@@ -68,7 +68,7 @@ def _coordinates(path: Path, xyz: tuple[str, str, str]) -> dict[str, tuple[float
         try:
             if len(row) != len(cols):
                 raise BadCell("point_id", "", f"expected {len(cols)} fields, got {len(row)}")
-            out[row[ix[0]].strip()] = tuple(finite(row[i], c) for i, c in zip(ix[1:], xyz))
+            out[row[ix[0]].strip()] = tuple(finite(row[i], c) for i, c in zip(ix[1:], xyz, strict=False))
         except BadCell as e:
             skipped.add("bad row", line, str(e))
     skipped.fail_if_nothing(len(out))
@@ -119,7 +119,7 @@ def import_hymn(root: str | os.PathLike, name: str | None = None) -> TrajectoryD
             skipped.add("unparsable row", line, str(e))
             continue
         meas = []
-        for a, v in zip(ids, vals):
+        for a, v in zip(ids, vals, strict=False):
             if v != v:
                 n_failed += 1
             elif a not in a_idx:

@@ -33,7 +33,7 @@ import math
 import struct
 from typing import Any
 
-from jaxcal.io.serial.frames import Frame, DecoderStats, Range
+from jaxcal.io.serial.frames import DecoderStats, Frame, Range
 
 __all__ = [
     "MAX_LEN",
