@@ -84,7 +84,8 @@ def main() -> int:
         print(json.dumps({"summary": p, **acc}))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     print(json.dumps({"summary": "all", **total, "seconds": round(time.monotonic() - t0, 1),
-                      "workers": a.workers, "seconds_per_stream": a.seconds, "machine": platform.machine(), "cpus": os.cpu_count(),
+                      "workers": a.workers, "seconds_per_stream": a.seconds, "machine": platform.machine(),
+                      "cpus": os.cpu_count(),
                       "load_1min": load}))
     return 1 if total["failures"] else 0
 

@@ -64,7 +64,8 @@ def network(seed: int, n: int = 10, n_epochs: int = 400, pair_offset_m: float = 
     lost = nlos & (rng.random(iu.size) < lost_nlos)
     sc = MeshScenario(name=f"family-{seed}", hall=(30.0, 20.0), node_ids=tuple(f"n{k}" for k in range(n)),
                       positions=tuple(map(tuple, xy)), walls=tuple(walls), n_epochs=n_epochs,
-                      never=tuple(zip(iu[lost].tolist(), ju[lost].tolist(), strict=False)), configs=(("f012", (0, 1, 2)),))
+                      never=tuple(zip(iu[lost].tolist(), ju[lost].tolist(), strict=False)),
+                      configs=(("f012", (0, 1, 2)),))
     ds = simulate(sc, seed=seed)
     off = np.zeros((n, n))
     off[iu, ju] = rng.normal(0.0, pair_offset_m, iu.size)

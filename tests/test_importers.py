@@ -226,7 +226,8 @@ def test_hymn_real(tmp_path):
     # first row: time, first range and tag position as in uwb.csv
     r0 = rows[0]
     assert ds.range_time[0] == int(r0["ts"]) / 1000
-    first = next((a, float(v)) for a, v in zip(_pylist(r0["anchor_ids"]), _pylist(r0["ranges"]), strict=False) if v != "nan")
+    first = next((a, float(v)) for a, v in zip(_pylist(r0["anchor_ids"]), _pylist(r0["ranges"]), strict=False)
+                 if v != "nan")
     assert ds.anchor_ids[ds.range_anchor[0]] == first[0] and ds.range[0] == np.float32(first[1])
     np.testing.assert_allclose(ds.pose_position[0], [float(r0[c]) for c in ("X_LOCAL_UWB", "Y_LOCAL_UWB",
                                                                              "Z_LOCAL_UWB")])

@@ -162,9 +162,10 @@ def test_encoders_reproduce_vectors():
     nf3 = spec_vector("**NodeFrame3** (50 B")
     nodes = [(1, 0, 2850, 181, 159), (1, 1, 6051, 182, 160), (1, 2, 7304, 170, 159), (1, 3, 5350, 184, 160)]
     assert E.nodeframe3(2, 1, 463352, 7262319, 4954, nodes, reserved=bytes([0, 0, 1, 2])) == nf3
-    assert E.nodeframe4(1, 3, 105870, 105870, 4456,
-                        [(2, 88, [(0, 2445), (1, 1748), (2, 2038), (3, 1709)]),
-                         (5, 70, [(0, 2744), (1, 1427), (2, 2408), (3, 1347)])])[20:-1] == hex_file("nodeframe4_stream.hex")[20:63]
+    assert (E.nodeframe4(1, 3, 105870, 105870, 4456,
+                         [(2, 88, [(0, 2445), (1, 1748), (2, 2038), (3, 1709)]),
+                          (5, 70, [(0, 2744), (1, 1427), (2, 2408), (3, 1347)])])[20:-1]
+            == hex_file("nodeframe4_stream.hex")[20:63])
 
 
 # ---------------------------------------------------------------------------------------- corruption
@@ -308,7 +309,8 @@ def test_nodeframe4_round_trip(tags):
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.tuples(st.integers(0, 254), st.integers(0, 6), st.lists(st.integers(0, 65535), min_size=8, max_size=8)),
+@given(st.lists(st.tuples(st.integers(0, 254), st.integers(0, 6),
+                          st.lists(st.integers(0, 65535), min_size=8, max_size=8)),
                 max_size=30))
 def test_anchorframe0_round_trip(slots):
     raw = E.anchorframe0([(i, r, (1, -2, 3), dis) for i, r, dis in slots], 7, 8, 4321)

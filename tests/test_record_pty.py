@@ -219,7 +219,8 @@ def test_tlv_module_stops_answering_then_never_comes_back(tmp_path):
     assert proc.returncode == 3, stderr
     lines = stderr.splitlines()
     assert lines[-1].startswith("jaxcal: the device was lost and did not come back: recording complete"), stderr
-    for fragment in ("no data for", "does not answer", "data again after", "device lost", "did not come back within 1 s"):
+    for fragment in ("no data for", "does not answer", "data again after", "device lost",
+                     "did not come back within 1 s"):
         assert _lines_with(stderr, fragment) == 1, (fragment, stderr)
     assert len(lines) == 5 and "Traceback" not in stderr  # four fault lines and the last one
     assert _h5_frames(out) == raws("dwm1001-tlv", answers)

@@ -133,7 +133,8 @@ def test_trajectory_mapping_and_auto_format(tmp_path):
     assert isinstance(ds, TrajectoryDataset)
     assert ds.anchor_ids == ("A0", "A2") and ds.tag_ids == ("T1", "T2")
     assert list(ds.range_time) == [0.2, 0.5, 0.5]  # sorted by time
-    assert [(ds.anchor_ids[a], ds.tag_ids[t], float(r)) for a, t, r in zip(ds.range_anchor, ds.range_tag, ds.range, strict=False)] == [
+    assert [(ds.anchor_ids[a], ds.tag_ids[t], float(r))
+            for a, t, r in zip(ds.range_anchor, ds.range_tag, ds.range, strict=False)] == [
         ("A2", "T2", 4.0), ("A0", "T1", 2.0), ("A2", "T1", 3.0)]
     assert rec.negative_ranges == 1
     assert "PLACEHOLDER POSES" in ds.description and np.all(ds.pose_position == 0)
@@ -186,7 +187,8 @@ def test_cli_replay_json_all_protocols(tmp_path):
     tlv = b"".join(loc + b"\x40\x01\x01" for loc in locs)
     # a repeated answer (no new update) is a duplicate; a truncated one is dropped
     (tmp_path / "tlv.bin").write_bytes(b"\x00\x13" + tlv + locs[-1] + locs[0][:50])
-    p = run_cli("record", "--replay", tmp_path / "tlv.bin", "--protocol", "dwm1001-tlv", "-o", tmp_path / "tlv.h5", "--json")
+    p = run_cli("record", "--replay", tmp_path / "tlv.bin", "--protocol", "dwm1001-tlv", "-o", tmp_path / "tlv.h5",
+                "--json")
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
     assert out["by_type"] == {"loc_get": 31, "error": 30} and out["ranges"] == 90 and out["duplicates"] == 1
@@ -205,12 +207,14 @@ def test_cli_replay_json_all_protocols(tmp_path):
 
 
 def test_cli_bad_input(tmp_path):
-    assert_one_line_error(run_cli("record", "--replay", tmp_path / "none.bin", "--protocol", "nlink", "-o", tmp_path / "x.h5"),
+    assert_one_line_error(run_cli("record", "--replay", tmp_path / "none.bin", "--protocol", "nlink",
+                                  "-o", tmp_path / "x.h5"),
                           "no such file")
     assert_one_line_error(run_cli("record", "--port", str(tmp_path / "no-port"), "--protocol", "nlink", "-o",
                                   tmp_path / "x.h5", "--duration", "1"), "cannot open serial port")
     (tmp_path / "g.bin").write_bytes(b"\x00" * 100)
-    assert_one_line_error(run_cli("record", "--replay", tmp_path / "g.bin", "--protocol", "nlink", "-o", tmp_path / "x.h5"),
+    assert_one_line_error(run_cli("record", "--replay", tmp_path / "g.bin", "--protocol", "nlink",
+                                  "-o", tmp_path / "x.h5"),
                           "no dataset written")
     from jaxcal.methods import MESH_METHODS
 
@@ -353,7 +357,8 @@ def live_capture(n_frames: int, seed: int = 0, late: tuple[int, int] | None = No
         active = [j for j in LIVE_TRUTH if late is None or j != late[0] or i >= late[1]]
         me = active[i % len(active)]
         t = 1000 + 20 * i
-        nodes = [(0, j, int(round(np.hypot(*np.subtract(LIVE_TRUTH[me], LIVE_TRUTH[j])) + rng.gauss(0, sd_mm))), 180, 160)
+        nodes = [(0, j, int(round(np.hypot(*np.subtract(LIVE_TRUTH[me], LIVE_TRUTH[j])) + rng.gauss(0, sd_mm))),
+                  180, 160)
                  for j in active if j != me]
         if rng.random() < 0.1:
             out += bytes(rng.randrange(256) for _ in range(rng.randrange(1, 20)))

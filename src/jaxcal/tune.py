@@ -465,7 +465,8 @@ def tune(
     are calibrate's own run with the start values (hard cut, its precision, `tune_eval.advance`),
     whose state (per held-out fold) the differentiated epochs start from. The objective reads the
     final estimates, which the last epochs move most; the guard still judges the whole run. For
-    evidence with `epochs` and `cell_m` None, those prefix runs are also the guard's start runs. Guard: `tune_eval.hard_metrics` of the start
+    evidence with `epochs` and `cell_m` None, those prefix runs are also the guard's start runs.
+    Guard: `tune_eval.hard_metrics` of the start
     and of the end on the whole dataset with `params` as `calibrate` will run them; the tuned values
     are returned only if their hard figure (`hard_key`: `rmse_m` for truth, for evidence the
     cross-validated range error of held-out pairs, `tune_eval.heldout_range_error`) is lower.

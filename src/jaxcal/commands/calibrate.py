@@ -14,7 +14,8 @@ def add_arguments(p) -> None:
     p.add_argument("-o", "--output", default=None, help="result file to write (required)")
     p.add_argument("--config", default=None, help=CONFIG_HELP + " 'auto': the best-connected, best-conditioned triple.")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a method parameter")
-    p.add_argument("--params", default=None, metavar="PARAMS.json", help="parameters from a JSON file (e.g. from `jaxcal tune`)")
+    p.add_argument("--params", default=None, metavar="PARAMS.json",
+                   help="parameters from a JSON file (e.g. from `jaxcal tune`)")
     p.add_argument("--list-params", action="store_true",
                    help="print the method's parameters (default, unit, meaning) and exit")
     add_output_flags(p, "print a JSON summary of the result")

@@ -175,6 +175,7 @@ def _print_other(path: str, s: dict) -> None:
         print("  params: " + ", ".join(f"{k}={v}" for k, v in s["params"].items()))
         t = s["tuning"]
         if t:
-            print(f"  tuned on {t.get('dataset', '?')} with objective {t.get('objective', t.get('objective_name', '?'))}")
+            print(f"  tuned on {t.get('dataset', '?')} with objective "
+                  f"{t.get('objective', t.get('objective_name', '?'))}")
     else:
         print(f"{path}: JSON summary written by jaxcal, keys: {', '.join(s['keys'])}")

@@ -3,7 +3,8 @@
 `record_serial` opens the port first (a bad port fails before any file is made), creates the journal
 (`jaxcal.io.journal`), starts the reader thread (`jaxcal.io.link`: it decodes and journals every frame
 before reading again), and only then imports h5py / JAX for the snapshots, on a thread of its own, so
-that neither a frame nor a fault line waits for that import. The main thread moves the decoded frames into the `Recording`, fsyncs the journal and the raw
+that neither a frame nor a fault line waits for that import. The main thread moves the decoded frames
+into the `Recording`, fsyncs the journal and the raw
 capture every ``flush_s``, rewrites the atomic HDF5 snapshot, runs ``on_flush`` (the live filter),
 prints the status line and one line per link fault (see `jaxcal.io.link`).
 

@@ -44,7 +44,8 @@ STABLE_S = 5.0
 RETRY_S = 0.25
 HINTS = {
     "nlink": "powered, and an output frame chosen in NAssistant?",
-    "dwm1001-tlv": "the module does not answer dwm_loc_get: in shell mode? (power-cycle it, or use the shell with --init)",
+    "dwm1001-tlv": "the module does not answer dwm_loc_get: in shell mode? "
+                   "(power-cycle it, or use the shell with --init)",
     "dwm1001-shell": "is `lec` streaming? (--init starts it; lec toggles)",
 }
 

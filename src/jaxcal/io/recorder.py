@@ -131,7 +131,8 @@ class Recording:
                     self.negative_ranges += 1
                     continue
                 si, di = self._index(r.src, r.src_role), self._index(r.dst, r.dst_role)
-                self._rows.append((t, si, di, r.range_m, r.fp_rssi, r.rx_rssi, r.src_role == "tag", r.dst_role == "tag"))
+                self._rows.append((t, si, di, r.range_m, r.fp_rssi, r.rx_rssi,
+                                   r.src_role == "tag", r.dst_role == "tag"))
                 added += 1
         self.n_ranges += added
         return added
@@ -152,7 +153,8 @@ class Recording:
             self._cols = {n: np.zeros(0, d) for n, d in zip(names, dtypes, strict=False)}
         if self._rows:
             cols = list(zip(*self._rows, strict=False))
-            self._cols = {n: np.concatenate([self._cols[n], np.asarray(c, d)]) for n, c, d in zip(names, cols, dtypes, strict=False)}
+            self._cols = {n: np.concatenate([self._cols[n], np.asarray(c, d)])
+                          for n, c, d in zip(names, cols, dtypes, strict=False)}
             self._rows = []
         return self._cols
 

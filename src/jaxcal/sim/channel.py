@@ -12,8 +12,8 @@ An error `e` is added to the true distance: `range = distance + e`. Each class i
    the LOS variance of 1.59 m^2 against a 0.73 m 3-sigma quantile implies ~0.2 % such outliers).
 
 The defaults reproduce Table I's |error| statistics in shape (LOS mean 0.28 m, median 0.21 m; NLOS
-mean 3.78 m, median 0.69 m, 2-sigma quantile 23 m) to within about 15 % when sampled i.i.d. (sampled: LOS 0.26 / 0.21 m, NLOS 3.65 / 0.67 m,
-NLOS 2-sigma quantile 22.9 m); see
+mean 3.78 m, median 0.69 m, 2-sigma quantile 23 m) to within about 15 % when sampled i.i.d.
+(sampled: LOS 0.26 / 0.21 m, NLOS 3.65 / 0.67 m, NLOS 2-sigma quantile 22.9 m); see
 `tests/test_sim.py`. Host-side NumPy: simulation happens once, outside traced code.
 """
 

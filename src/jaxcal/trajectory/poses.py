@@ -2,7 +2,8 @@
 
 Positions come from a cumulative cubic B-spline fitted to the pose stream (`bspline.py`); orientations
 are interpolated by slerp between the two neighbouring poses. Between two consecutive poses with
-identical positions the platform is taken as standing still (exact position, no spline ringing) (the paper omits R(t) in the calibration;
+identical positions the platform is taken as standing still (exact position, no spline ringing)
+(the paper omits R(t) in the calibration;
 we need it only to rotate each tag's lever arm into the world frame). Ranges outside the pose time
 span, or inside a gap of the pose stream longer than `max_gap_s`, are dropped and counted.
 

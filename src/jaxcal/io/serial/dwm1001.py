@@ -97,7 +97,8 @@ def _decode_items(raw: bytes, self_id: str | None) -> Frame:
                 addr, dist, dqf = struct.unpack_from("<HIB", v, e)
                 p, pqf = _pos(v, e + 7)
                 aid = f"{addr:04X}"
-                anchors.append({"addr": addr, "id": aid, "dist": dist / 1000.0, "qf": dqf, "position": p, "pos_qf": pqf})
+                anchors.append({"addr": addr, "id": aid, "dist": dist / 1000.0, "qf": dqf, "position": p,
+                                "pos_qf": pqf})
                 ranges.append(Range(me, aid, dist / 1000.0, math.nan, math.nan, "tag", "anchor"))
             fields["anchors"] = tuple(anchors)
             kind = "loc_get"

@@ -45,7 +45,8 @@ def _var_frame(mark: int, head: bytes, blocks: bytes) -> bytes:
 def nodeframe3(role: int, ident: int, local_time: int, system_time: int, voltage_mv: int,
                nodes: Sequence[tuple[int, int, int, int, int]], reserved: bytes = bytes(4)) -> bytes:
     """NodeFrame3 (0x55 0x05). nodes: (role, id, dis_mm, fp_rssi_byte, rx_rssi_byte) each."""
-    head = struct.pack("<BBII", role, ident, local_time, system_time) + reserved + struct.pack("<HB", voltage_mv, len(nodes))
+    head = (struct.pack("<BBII", role, ident, local_time, system_time) + reserved
+            + struct.pack("<HB", voltage_mv, len(nodes)))
     blocks = b"".join(bytes([r, i]) + _i24(d) + bytes([fp, rx]) for r, i, d, fp, rx in nodes)
     return _var_frame(0x05, head, blocks)
 
@@ -53,7 +54,8 @@ def nodeframe3(role: int, ident: int, local_time: int, system_time: int, voltage
 def nodeframe5(role: int, ident: int, local_time: int, system_time: int, voltage_mv: int,
                nodes: Sequence[tuple[int, int, int, int, int]]) -> bytes:
     """NodeFrame5 (0x55 0x08): NodeFrame3 with u32 ids."""
-    head = struct.pack("<BIII", role, ident, local_time, system_time) + bytes(4) + struct.pack("<HB", voltage_mv, len(nodes))
+    head = (struct.pack("<BIII", role, ident, local_time, system_time) + bytes(4)
+            + struct.pack("<HB", voltage_mv, len(nodes)))
     blocks = b"".join(struct.pack("<BI", r, i) + _i24(d) + bytes([fp, rx]) for r, i, d, fp, rx in nodes)
     return _var_frame(0x08, head, blocks)
 
@@ -61,8 +63,10 @@ def nodeframe5(role: int, ident: int, local_time: int, system_time: int, voltage
 def aoa_nodeframe0(role: int, ident: int, local_time: int, system_time: int, voltage_mv: int,
                    nodes: Sequence[tuple[int, int, int, int, int, int]]) -> bytes:
     """AOA NodeFrame0 (0x55 0x07). nodes: (role, id, dis_mm, angle_centideg, fp_byte, rx_byte)."""
-    head = struct.pack("<BBII", role, ident, local_time, system_time) + bytes(4) + struct.pack("<HB", voltage_mv, len(nodes))
-    blocks = b"".join(bytes([r, i]) + _i24(d) + struct.pack("<hBB", a, fp, rx) + bytes(2) for r, i, d, a, fp, rx in nodes)
+    head = (struct.pack("<BBII", role, ident, local_time, system_time) + bytes(4)
+            + struct.pack("<HB", voltage_mv, len(nodes)))
+    blocks = b"".join(bytes([r, i]) + _i24(d) + struct.pack("<hBB", a, fp, rx) + bytes(2)
+                      for r, i, d, a, fp, rx in nodes)
     return _var_frame(0x07, head, blocks)
 
 
@@ -77,14 +81,16 @@ def nodeframe2(role: int, ident: int, system_time: int, local_time: int, voltage
     struct.pack_into("<4f", head, 78, 1.0, 0.0, 0.0, 0.0)
     struct.pack_into("<I", head, 98, local_time)
     struct.pack_into("<HB", head, 112, voltage_mv, len(nodes))
-    blocks = b"".join(bytes([r, i]) + _i24(d) + struct.pack("<BBI", fp, rx, t) + bytes(2) for r, i, d, fp, rx, t in nodes)
+    blocks = b"".join(bytes([r, i]) + _i24(d) + struct.pack("<BBI", fp, rx, t) + bytes(2)
+                      for r, i, d, fp, rx, t in nodes)
     return _var_frame(0x04, bytes(head), blocks)
 
 
 def nodeframe4(role: int, ident: int, local_time: int, system_time: int, voltage_mv: int,
                tags: Sequence[tuple[int, int, Sequence[tuple[int, int]]]]) -> bytes:
     """NodeFrame4 (0x55 0x06). tags: (tag_id, voltage_byte (V*20), [(anchor_id, dis_mm), ...])."""
-    head = struct.pack("<BBII", role, ident, local_time, system_time) + bytes(4) + struct.pack("<HB", voltage_mv, len(tags))
+    head = (struct.pack("<BBII", role, ident, local_time, system_time) + bytes(4)
+            + struct.pack("<HB", voltage_mv, len(tags)))
     blocks = b"".join(
         bytes([tid, 0, 0, tv, len(anchors)]) + b"".join(bytes([a]) + _i24(d) for a, d in anchors)
         for tid, tv, anchors in tags
@@ -184,11 +190,13 @@ def random_nlink_frame(rng) -> bytes:
     volt = rng.randrange(3000, 5200)
 
     def nodes(k, ids=256):
-        return [(rng.randrange(3), rng.randrange(ids), rng.randrange(-500, 60000), rng.randrange(256), rng.randrange(256))
+        return [(rng.randrange(3), rng.randrange(ids), rng.randrange(-500, 60000), rng.randrange(256),
+                 rng.randrange(256))
                 for _ in range(k)]
 
     if kind <= 1:
-        return nodeframe3(rng.randrange(3), rng.randrange(256), t, rng.randrange(1 << 32), volt, nodes(rng.randrange(9)))
+        return nodeframe3(rng.randrange(3), rng.randrange(256), t, rng.randrange(1 << 32), volt,
+                          nodes(rng.randrange(9)))
     if kind == 2:
         return nodeframe5(rng.randrange(3), rng.randrange(1 << 32), t, t, volt, nodes(rng.randrange(6), 1 << 32))
     if kind == 3:
@@ -198,11 +206,13 @@ def random_nlink_frame(rng) -> bytes:
         return nodeframe2(2, rng.randrange(256), t, t, volt, [rng.randrange(-9000, 9000) for _ in range(3)],
                           [n + (t,) for n in nodes(rng.randrange(5))])
     if kind == 5:
-        tags = [(rng.randrange(256), rng.randrange(256), [(a, rng.randrange(0, 30000)) for a in range(rng.randrange(5))])
+        tags = [(rng.randrange(256), rng.randrange(256),
+                 [(a, rng.randrange(0, 30000)) for a in range(rng.randrange(5))])
                 for _ in range(rng.randrange(4))]
         return nodeframe4(1, rng.randrange(256), t, t, volt, tags)
     if kind == 6:
-        return tagframe0(rng.randrange(256), 2, [rng.choice((0, rng.randrange(1, 30000))) for _ in range(8)], t, t, volt)
+        return tagframe0(rng.randrange(256), 2, [rng.choice((0, rng.randrange(1, 30000))) for _ in range(8)],
+                         t, t, volt)
     if kind == 7:
         slots = [(rng.randrange(255), 2, [rng.randrange(-9000, 9000) for _ in range(3)],
                   [rng.randrange(0, 3000) for _ in range(8)]) for _ in range(rng.randrange(4))]
