@@ -340,5 +340,8 @@ class LiveCalibrator:
             track_time=np.asarray(dataset.time, np.float64), track_position=track, software=_software(),
         )
         from jaxcal.mesh.identify import mask_result
+        from jaxcal.mesh.pgp import with_pair_covariance
 
-        return mask_result(res, dataset.range)  # what the ranges cannot fix: NaN rows + one warning line
+        # as `calibrate --method pgp`: widened to the per-pair systematic errors, and what the ranges
+        # cannot fix as NaN rows with one warning line
+        return mask_result(with_pair_covariance(res, dataset.range), dataset.range)
