@@ -8,13 +8,7 @@
 #   .venv/bin/mkdocs serve                 # then: a live preview at http://127.0.0.1:8000
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup.sh
-stamp=.venv/.jaxcal-docs-installed
-want=$(cat pyproject.toml constraints.txt | sha256sum | cut -d' ' -f1)
-if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
-  .venv/bin/python -m pip install -q -c constraints.txt -e ".[docs]"
-  echo "$want" > "$stamp"
-fi
+bash scripts/install-extra.sh docs
 export NO_MKDOCS_2_WARNING=1 JAX_PLATFORMS="${JAX_PLATFORMS:-cpu}"
 start=$(date +%s)
 .venv/bin/mkdocs build --strict "$@"

@@ -5,13 +5,7 @@
 #   .venv/bin/ruff format src tests benchmarks && .venv/bin/ruff check --fix src tests benchmarks
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup.sh
-stamp=.venv/.jaxcal-lint-installed
-want=$(cat pyproject.toml constraints.txt | sha256sum | cut -d' ' -f1)
-if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
-  .venv/bin/python -m pip install -q -c constraints.txt -e ".[lint]"
-  echo "$want" > "$stamp"
-fi
+bash scripts/install-extra.sh lint
 .venv/bin/ruff check src tests benchmarks
 .venv/bin/ruff format --check src tests benchmarks
 echo "lint: ruff check and ruff format --check clean"
