@@ -89,8 +89,17 @@ def main(argv=None) -> int:
                     print(f"# {name} draw {k} {est}: {e}", file=sys.stderr)
                     rows[est].append(float("nan"))
             rows["scipy-soft_l1"].append(aligned_rmse(peer_scipy(r, dim, peer_sklearn(r, dim)), truth))
-            print(json.dumps({"dataset": name, "draw": k, **{m: round(v[-1], 4) for m, v in rows.items()},
-                              "seconds": round(time.perf_counter() - t0, 1)}), flush=True)
+            print(
+                json.dumps(
+                    {
+                        "dataset": name,
+                        "draw": k,
+                        **{m: round(v[-1], 4) for m, v in rows.items()},
+                        "seconds": round(time.perf_counter() - t0, 1),
+                    }
+                ),
+                flush=True,
+            )
         a, b = np.asarray(rows["mean"]), np.asarray(rows["map"])
         summary[name] = ({m: float(np.nanmean(v)) for m, v in rows.items()}, int(np.sum(a < b)))
     print(f"\nmean aligned RMSE [m] over {args.draws} pair-permutation draws (seed {args.seed})")

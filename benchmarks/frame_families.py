@@ -63,18 +63,20 @@ def score(ds, res, ident) -> dict:
     sel = placed & others
     rmse = float(np.sqrt(np.mean(err[sel] ** 2))) if sel.any() else float("nan")
     fin = np.isfinite(ds.range)
-    seen = (fin.any(axis=2) | fin.any(axis=1))  # (K, N): node ranged this epoch
+    seen = fin.any(axis=2) | fin.any(axis=1)  # (K, N): node ranged this epoch
     avail = []
     for i in np.flatnonzero(fixed & others):
         first = np.flatnonzero(seen[:, i])
         if res.track_position is None:
             avail.append(1.0 if placed[i] else 0.0)
         elif first.size:
-            has = np.isfinite(res.track_position[first[0]:, i]).all(axis=1)
+            has = np.isfinite(res.track_position[first[0] :, i]).all(axis=1)
             avail.append(float(has.mean()))
     return {
-        "fixed": int(fixed.sum()), "placed": float((placed & fixed).sum() / max(fixed.sum(), 1)),
-        "extra": int((placed & ~fixed).sum()), "avail": float(min(avail)) if avail else float("nan"),
+        "fixed": int(fixed.sum()),
+        "placed": float((placed & fixed).sum() / max(fixed.sum(), 1)),
+        "extra": int((placed & ~fixed).sum()),
+        "avail": float(min(avail)) if avail else float("nan"),
         "rmse": rmse,
     }
 
@@ -94,23 +96,31 @@ def families(args) -> list[dict]:
                 if method == "pgp-direct":
                     method, mode = "pgp", "direct"
                 res, secs, ident = run_one(ds, method, mode)
-                row = {"family": kind, "seed": seed, "method": method + ("-direct" if mode == "direct" else ""),
-                       "seconds": round(secs, 2), **score(ds, res, ident)}
+                row = {
+                    "family": kind,
+                    "seed": seed,
+                    "method": method + ("-direct" if mode == "direct" else ""),
+                    "seconds": round(secs, 2),
+                    **score(ds, res, ident),
+                }
                 print(json.dumps(row), flush=True)
                 rows.append(row)
     return rows
 
 
 def table(rows: list[dict]) -> str:
-    out = ["| family | method | runs | fixed nodes (median) | placed share: median / worst | "
-           "extra placed (total) | availability: median / worst | RMSE [m]: median / worst |",
-           "|---|---|---|---|---|---|---|---|"]
+    out = [
+        "| family | method | runs | fixed nodes (median) | placed share: median / worst | "
+        "extra placed (total) | availability: median / worst | RMSE [m]: median / worst |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     keys = sorted({(r["family"], r["method"]) for r in rows}, key=lambda k: (k[0], k[1]))
     for fam, meth in keys:
         rs = [r for r in rows if r["family"] == fam and r["method"] == meth]
         pl = np.array([r["placed"] for r in rs])
         av = np.array([r["avail"] for r in rs], dtype=float)
         rm = np.array([r["rmse"] for r in rs], dtype=float)
+
         def worst(x):
             return float(np.max(np.where(np.isfinite(x), x, np.inf))) if x.size else float("nan")
 
@@ -121,7 +131,8 @@ def table(rows: list[dict]) -> str:
             f"| {fam} | {meth} | {len(rs)} | {np.median([r['fixed'] for r in rs]):.0f} | "
             f"{np.median(pl):.2f} / {pl.min():.2f} | {sum(r['extra'] for r in rs)} | "
             f"{med(av):.3f} / {np.nanmin(av) if np.isfinite(av).any() else float('nan'):.3f} | "
-            f"{med(rm):.2f} / {worst(rm):.2f} |")
+            f"{med(rm):.2f} / {worst(rm):.2f} |"
+        )
     return "\n".join(out)
 
 
@@ -148,21 +159,52 @@ def torgau(args) -> None:
                 env = {**os.environ, "PYTHONPATH": src, "JAX_PLATFORMS": os.environ.get("JAX_PLATFORMS", "cpu")}
                 extra = ["--set", "estimate=map"] if method == "batch" else []
                 t0 = time.perf_counter()
-                p = subprocess.run([sys.executable, "-m", "jaxcal.cli", "calibrate", str(path), "--method", method,
-                                    "--config", "conf1", "-o", str(out), *extra],
-                                   capture_output=True, text=True, env=env)
+                p = subprocess.run(
+                    [
+                        sys.executable,
+                        "-m",
+                        "jaxcal.cli",
+                        "calibrate",
+                        str(path),
+                        "--method",
+                        method,
+                        "--config",
+                        "conf1",
+                        "-o",
+                        str(out),
+                        *extra,
+                    ],
+                    capture_output=True,
+                    text=True,
+                    env=env,
+                )
                 secs = time.perf_counter() - t0
-                row = {"torgau": label, "method": method, "rc": p.returncode, "seconds": round(secs, 1),
-                       "stdout": p.stdout.strip()[-300:], "stderr": p.stderr.strip()[-400:]}
+                row = {
+                    "torgau": label,
+                    "method": method,
+                    "rc": p.returncode,
+                    "seconds": round(secs, 1),
+                    "stdout": p.stdout.strip()[-300:],
+                    "stderr": p.stderr.strip()[-400:],
+                }
                 if p.returncode == 0:
-                    e = subprocess.run([sys.executable, "-m", "jaxcal.cli", "evaluate", str(out), "--truth", str(path),
-                                        "--json"], capture_output=True, text=True, env=env)
+                    e = subprocess.run(
+                        [sys.executable, "-m", "jaxcal.cli", "evaluate", str(out), "--truth", str(path), "--json"],
+                        capture_output=True,
+                        text=True,
+                        env=env,
+                    )
                     if e.returncode == 0:
                         rep = json.loads(e.stdout)
                         av = [nd["availability"] for nd in rep["nodes"]]
                         placed = sum(1 for nd in rep["nodes"] if nd["final_error_m"] is not None)
-                        row.update(rmse_m=rep["rmse_m"], final_rmse_m=rep["final_rmse_m"], placed=placed,
-                                   min_availability=min(av), nodes=len(av))
+                        row.update(
+                            rmse_m=rep["rmse_m"],
+                            final_rmse_m=rep["final_rmse_m"],
+                            placed=placed,
+                            min_availability=min(av),
+                            nodes=len(av),
+                        )
                 print(json.dumps(row), flush=True)
 
 

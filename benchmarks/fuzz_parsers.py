@@ -28,9 +28,11 @@ def tlv_stream(rng: random.Random, n: int) -> tuple[bytes, int]:
     for _ in range(n):
         if rng.random() < 0.3:
             out += bytes(rng.randrange(256) for _ in range(rng.randrange(1, 40)))
-        r = E.loc_get_tag([rng.randrange(-9999, 9999) for _ in range(3)], 50,
-                          [(rng.randrange(65536), rng.randrange(30000), 100, (1, 2, 3), 100)
-                           for _ in range(rng.randrange(1, 6))])
+        r = E.loc_get_tag(
+            [rng.randrange(-9999, 9999) for _ in range(3)],
+            50,
+            [(rng.randrange(65536), rng.randrange(30000), 100, (1, 2, 3), 100) for _ in range(rng.randrange(1, 6))],
+        )
         if rng.random() < 0.2:
             r = r[: rng.randrange(3, len(r))]  # truncated response
         else:
@@ -44,9 +46,11 @@ def shell_stream(rng: random.Random, n: int) -> tuple[bytes, int]:
     for _ in range(n):
         if rng.random() < 0.3:
             out += bytes(rng.randrange(256) for _ in range(rng.randrange(1, 40)))
-        line = E.lec_line([(f"{rng.randrange(65536):04X}", (1, 2, 3), rng.random() * 20)
-                           for _ in range(rng.randrange(1, 6))],
-                          (1.0, 2.0, 0.5), 90)
+        line = E.lec_line(
+            [(f"{rng.randrange(65536):04X}", (1, 2, 3), rng.random() * 20) for _ in range(rng.randrange(1, 6))],
+            (1.0, 2.0, 0.5),
+            90,
+        )
         if rng.random() < 0.2:
             b = bytearray(line)
             b[rng.randrange(len(b) - 2)] = rng.randrange(256)
@@ -90,11 +94,21 @@ def fuzz(protocol: str, n_chunks: int, seed: int, noise_chunks: bool = True) -> 
     st = dec.stats
     nbytes = sum(map(len, chunks))
     return {
-        "bench": "fuzz_parsers", "protocol": protocol, "noise_chunks": noise_chunks, "chunks": n_chunks,
-        "bytes": nbytes, "frames": frames,
-        "exceptions": exceptions, "checksum_failures": st.checksum_failures, "bytes_skipped": st.bytes_skipped,
-        "seconds": round(dt, 3), "frames_per_s": round(frames / dt, 1), "chunks_per_s": round(n_chunks / dt, 1),
-        "mbytes_per_s": round(nbytes / dt / 1e6, 3), "python": platform.python_version(), "machine": platform.machine(),
+        "bench": "fuzz_parsers",
+        "protocol": protocol,
+        "noise_chunks": noise_chunks,
+        "chunks": n_chunks,
+        "bytes": nbytes,
+        "frames": frames,
+        "exceptions": exceptions,
+        "checksum_failures": st.checksum_failures,
+        "bytes_skipped": st.bytes_skipped,
+        "seconds": round(dt, 3),
+        "frames_per_s": round(frames / dt, 1),
+        "chunks_per_s": round(n_chunks / dt, 1),
+        "mbytes_per_s": round(nbytes / dt / 1e6, 3),
+        "python": platform.python_version(),
+        "machine": platform.machine(),
     }
 
 

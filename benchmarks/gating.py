@@ -117,9 +117,7 @@ def campus_gp_anchors(seed: int, drift: float):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument(
-        "--quick", action="store_true", help="fewer configurations and queries (< 2 min)"
-    )
+    ap.add_argument("--quick", action="store_true", help="fewer configurations and queries (< 2 min)")
     ap.add_argument("--json", action="store_true", help="one JSON object per configuration")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeats", type=int, default=None)
@@ -130,9 +128,7 @@ def main(argv=None) -> int:
         help="also GP-calibrated anchors (auto: if available, not with --quick: takes minutes)",
     )
     ap.add_argument("--descriptor-dim", type=int, default=256, help="F (cost per keyframe match)")
-    ap.add_argument(
-        "--campus-drift", type=float, default=0.0, help="odometry drift of the campus run"
-    )
+    ap.add_argument("--campus-drift", type=float, default=0.0, help="odometry drift of the campus run")
     args = ap.parse_args(argv)
 
     quick = args.quick
@@ -172,33 +168,22 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     full = jax.block_until_ready(gating.search_full(db, qdesc, top_k=1))
     full_compile_s = time.perf_counter() - t0
-    full_s = best_time(
-        lambda: jax.block_until_ready(gating.search_full(db, qdesc, top_k=1)), repeats
-    )
+    full_s = best_time(lambda: jax.block_until_ready(gating.search_full(db, qdesc, top_k=1)), repeats)
     succ_full, err_full = score(kf_pos, np.asarray(full.index[:, 0]), truth)
     single = np.linspace(0, q - 1, n_single).astype(int)
     one = [qdesc[i] for i in single]
     jax.block_until_ready(gating.search_one_full(db, one[0], 1))
     full_single_ms = 1e3 * float(
         np.mean(
-            [
-                best_time(
-                    lambda x=x: jax.block_until_ready(gating.search_one_full(db, x, 1)), lat_repeats
-                )
-                for x in one
-            ]
+            [best_time(lambda x=x: jax.block_until_ready(gating.search_one_full(db, x, 1)), lat_repeats) for x in one]
         )
     )
 
-    masked_fn = jax.jit(
-        jax.vmap(gating.rank_masked, in_axes=(None, None, 0, 0, None, None)), static_argnums=5
-    )
+    masked_fn = jax.jit(jax.vmap(gating.rank_masked, in_axes=(None, None, 0, 0, None, None)), static_argnums=5)
 
     # (label, scene whose anchors and ranges are used, estimated positions, covariances)
     rng = np.random.default_rng(args.seed + 100)
-    calibrations = [
-        ("controlled", scene, *perturb_anchors(rng, scene.anchor_truth, e)) for e in errors
-    ]
+    calibrations = [("controlled", scene, *perturb_anchors(rng, scene.anchor_truth, e)) for e in errors]
     if args.gp == "yes" or (args.gp == "auto" and not quick):
         found = 0
         # GP of the campus scenario (its 10 anchors, same 600 x 450 m area) placed in the yard
@@ -238,9 +223,7 @@ def main(argv=None) -> int:
             gated_s = best_time(gated, repeats)
             jax.block_until_ready(masked_fn(db, anchors, r_j, qdesc, params, 1))
             masked_s = best_time(
-                lambda an=anchors, r=r_j: jax.block_until_ready(
-                    masked_fn(db, an, r, qdesc, params, 1)
-                ),
+                lambda an=anchors, r=r_j: jax.block_until_ready(masked_fn(db, an, r, qdesc, params, 1)),
                 repeats,
             )
             succ, err = score(kf_pos, np.asarray(res.index[:, 0]), truth)
@@ -285,9 +268,7 @@ def main(argv=None) -> int:
                 "success_gated_los_queries": float(
                     np.mean(
                         (
-                            np.linalg.norm(
-                                kf_pos[np.maximum(np.asarray(res.index[:, 0]), 0)] - truth, axis=1
-                            )
+                            np.linalg.norm(kf_pos[np.maximum(np.asarray(res.index[:, 0]), 0)] - truth, axis=1)
                             < SUCCESS_M
                         )[los_only]
                     )
@@ -304,10 +285,7 @@ def main(argv=None) -> int:
             if args.json:
                 print(
                     json.dumps(
-                        {
-                            k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-                            for k, v in row.items()
-                        }
+                        {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
                     ),
                     flush=True,
                 )

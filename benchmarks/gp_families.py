@@ -115,8 +115,10 @@ def table(paths):
             if line.startswith("{"):
                 d = json.loads(line)
                 rows[(re.sub(r" seed=\d+", "", d["dataset"]), d["method"])].append(d)
-    print("| dataset | method | runs | mean error [m] median | worst | horizontal [m] median | "
-          "NEES/dof median | worst | NaN heights | seconds median |")
+    print(
+        "| dataset | method | runs | mean error [m] median | worst | horizontal [m] median | "
+        "NEES/dof median | worst | NaN heights | seconds median |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
 
     def f(v):
@@ -128,8 +130,10 @@ def table(paths):
         hor = f([d["horizontal_m"] for d in ds_rows])[0]
         nan_h = sum(d["nan_height"] for d in ds_rows)
         sec = np.median([d["seconds"] for d in ds_rows])
-        print(f"| {ds} | {m} | {len(ds_rows)} | {err[0]} | {err[1]} | {hor} | {nees[0]} | "
-              f"{nees[1]} | {nan_h} | {sec:.1f} |")
+        print(
+            f"| {ds} | {m} | {len(ds_rows)} | {err[0]} | {err[1]} | {hor} | {nees[0]} | "
+            f"{nees[1]} | {nan_h} | {sec:.1f} |"
+        )
 
 
 def main():

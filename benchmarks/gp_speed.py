@@ -43,13 +43,36 @@ def main():
     ds = simulate("campus", seed=a.seed, range_rate_hz=a.rate)
     base = {"dataset": f"campus seed={a.seed} rate={a.rate:g}", "ranges": int(ds.range.size)}
     _, cold, warm, err = timed(ds, "nls", {})
-    print(json.dumps({**base, "method": "nls", "cold_s": cold, "warm_s": warm, "mean_error_m": err,
-                      "load1": round(os.getloadavg()[0], 2)}), flush=True)
+    print(
+        json.dumps(
+            {
+                **base,
+                "method": "nls",
+                "cold_s": cold,
+                "warm_s": warm,
+                "mean_error_m": err,
+                "load1": round(os.getloadavg()[0], 2),
+            }
+        ),
+        flush=True,
+    )
     for n in a.n:
         p = {"n_train": n, "block": a.block}
         _, cold, warm, err = timed(ds, "gp", p)
-        print(json.dumps({**base, "method": "gp", **p, "cold_s": cold, "warm_s": warm,
-                          "mean_error_m": err, "load1": round(os.getloadavg()[0], 2)}), flush=True)
+        print(
+            json.dumps(
+                {
+                    **base,
+                    "method": "gp",
+                    **p,
+                    "cold_s": cold,
+                    "warm_s": warm,
+                    "mean_error_m": err,
+                    "load1": round(os.getloadavg()[0], 2),
+                }
+            ),
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -46,8 +46,7 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-sim", action="store_true")
     args = ap.parse_args(argv)
     models = [("gaussian", {})] + [
-        (f"mixture w={w} m={m}", {"range_model": "mixture", "nlos_weight": float(w),
-                                   "nlos_mean_m": float(m)})
+        (f"mixture w={w} m={m}", {"range_model": "mixture", "nlos_weight": float(w), "nlos_mean_m": float(m)})
         for w, m in itertools.product(args.weights.split(","), args.means.split(","))
     ]
     runs = []
@@ -65,17 +64,23 @@ def main(argv=None) -> int:
                 t0 = time.perf_counter()
                 res = pgp.calibrate(ds, over, config=conf)
                 ev = evaluate_mesh(res, ds)
-                rec = {"dataset": label, "model": model, "rmse_m": ev["rmse_m"],
-                       "final_rmse_m": ev["final_rmse_m"], "aligned_rmse_m": ev["aligned_rmse_m"],
-                       "seconds": time.perf_counter() - t0, "epochs": ds.n_epochs,
-                       "device": jax.devices()[0].platform, "host": platform.node()}
+                rec = {
+                    "dataset": label,
+                    "model": model,
+                    "rmse_m": ev["rmse_m"],
+                    "final_rmse_m": ev["final_rmse_m"],
+                    "aligned_rmse_m": ev["aligned_rmse_m"],
+                    "seconds": time.perf_counter() - t0,
+                    "epochs": ds.n_epochs,
+                    "device": jax.devices()[0].platform,
+                    "host": platform.node(),
+                }
                 table.setdefault(label, {})[model] = rec
                 print(json.dumps(rec), flush=True)
     print("\nRMSE over node-epochs / final / aligned [m]")
     for label, row in table.items():
         cells = "  ".join(
-            f"{m}: {r['rmse_m']:.3f}/{r['final_rmse_m']:.3f}/{r['aligned_rmse_m']:.3f}"
-            for m, r in row.items()
+            f"{m}: {r['rmse_m']:.3f}/{r['final_rmse_m']:.3f}/{r['aligned_rmse_m']:.3f}" for m, r in row.items()
         )
         print(f"{label:36s} {cells}")
     return 0

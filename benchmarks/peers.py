@@ -68,8 +68,7 @@ def peer_sklearn(range_m: np.ndarray, dim: int, seed: int = 0) -> np.ndarray:
     full = np.where(np.isfinite(med), med, shortest_path(graph, directed=False))
     full = np.where(np.isfinite(full), full, np.nanmax(full[np.isfinite(full)]))
     try:  # scikit-learn >= 1.8 spells it metric_mds / metric="precomputed"
-        mds = MDS(n_components=dim, metric_mds=True, metric="precomputed", n_init=4, init="random",
-                  random_state=seed)
+        mds = MDS(n_components=dim, metric_mds=True, metric="precomputed", n_init=4, init="random", random_state=seed)
     except TypeError:
         mds = MDS(n_components=dim, metric=True, dissimilarity="precomputed", n_init=4, random_state=seed)
     return mds.fit_transform(full)
@@ -117,9 +116,21 @@ def import_real(tmp: Path) -> list[tuple[str, object]]:
     for name, (folder, cfg) in DWM_SCENARIOS.items():
         dst = tmp / f"{name}.h5"
         proc = subprocess.run(
-            [sys.executable, "-m", "jaxcal.cli", "import", "dwm1001-autocal", str(SHARED / folder),
-             str(SHARED / "nodes_cfg" / f"{cfg}.yaml"), "-o", str(dst), "--name", name],
-            capture_output=True, text=True,
+            [
+                sys.executable,
+                "-m",
+                "jaxcal.cli",
+                "import",
+                "dwm1001-autocal",
+                str(SHARED / folder),
+                str(SHARED / "nodes_cfg" / f"{cfg}.yaml"),
+                "-o",
+                str(dst),
+                "--name",
+                name,
+            ],
+            capture_output=True,
+            text=True,
         )
         if proc.returncode != 0:
             print(f"# import {name} failed: {proc.stderr.strip()}", file=sys.stderr)
@@ -143,8 +154,13 @@ def main(argv=None) -> int:
     ap.add_argument("--configs", default="conf1,conf2", help="frame configurations to run (each file's that exist)")
     ap.add_argument("--skip-real", action="store_true")
     ap.add_argument("--skip-sim", action="store_true")
-    ap.add_argument("--set", action="append", default=[], metavar="METHOD:KEY=VALUE",
-                    help="parameter override for one jaxcal method (e.g. batch:loss=huber)")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="METHOD:KEY=VALUE",
+        help="parameter override for one jaxcal method (e.g. batch:loss=huber)",
+    )
     args = ap.parse_args(argv)
     methods = [m for m in args.methods.split(",") if m]
     overrides: dict[str, dict[str, str]] = {}
@@ -170,8 +186,14 @@ def main(argv=None) -> int:
         for label, ds, conf in runs:
             dim = truth_dim(ds)
             row = table.setdefault(label, {})
-            rec_base = {"dataset": label, "nodes": ds.n_nodes, "epochs": ds.n_epochs, "dim": dim,
-                        "device": jax.devices()[0].platform, "host": platform.node()}
+            rec_base = {
+                "dataset": label,
+                "nodes": ds.n_nodes,
+                "epochs": ds.n_epochs,
+                "dim": dim,
+                "device": jax.devices()[0].platform,
+                "host": platform.node(),
+            }
             for meth in methods:
                 params = dict(overrides.get(meth, {}))
                 if dim == 3 and meth.endswith("batch") and "dim" not in params:
@@ -186,9 +208,20 @@ def main(argv=None) -> int:
                     if "--debug" in sys.argv:
                         traceback.print_exc()
                 row[meth] = rmse
-                print(json.dumps({**rec_base, "method": meth, "kind": "jaxcal", "params": params,
-                                  "aligned_rmse_m": rmse, "seconds": time.perf_counter() - t0,
-                                  "error": err}), flush=True)
+                print(
+                    json.dumps(
+                        {
+                            **rec_base,
+                            "method": meth,
+                            "kind": "jaxcal",
+                            "params": params,
+                            "aligned_rmse_m": rmse,
+                            "seconds": time.perf_counter() - t0,
+                            "error": err,
+                        }
+                    ),
+                    flush=True,
+                )
             t0 = time.perf_counter()
             x_sk = peer_sklearn(ds.range, dim)
             t_sk = time.perf_counter() - t0
@@ -196,15 +229,30 @@ def main(argv=None) -> int:
             t_sp = time.perf_counter() - t0
             for meth, x, sec in (("sklearn-smacof", x_sk, t_sk), ("scipy-soft_l1", x_sp, t_sp)):
                 row[meth] = aligned_rmse(x, ds.truth)
-                print(json.dumps({**rec_base, "method": meth, "kind": "peer", "aligned_rmse_m": row[meth],
-                                  "seconds": sec, "error": None}), flush=True)
+                print(
+                    json.dumps(
+                        {
+                            **rec_base,
+                            "method": meth,
+                            "kind": "peer",
+                            "aligned_rmse_m": row[meth],
+                            "seconds": sec,
+                            "error": None,
+                        }
+                    ),
+                    flush=True,
+                )
 
     cols = methods + list(PEERS)
     w = max([len(k) for k in table] + [8])
     hybrid = "pgp" in methods and "pgp+batch" in methods
     print("\naligned RMSE [m]")
-    print(f"{'dataset':{w}s} " + " ".join(f"{c:>14s}" for c in cols) + "  best-jaxcal  beats-peers"
-          + ("  pgp+batch<=pgp" if hybrid else ""))
+    print(
+        f"{'dataset':{w}s} "
+        + " ".join(f"{c:>14s}" for c in cols)
+        + "  best-jaxcal  beats-peers"
+        + ("  pgp+batch<=pgp" if hybrid else "")
+    )
     for label, row in table.items():
         best_j = min((row[m] for m in methods if np.isfinite(row[m])), default=float("nan"))
         best_p = min(row[p] for p in PEERS)

@@ -62,9 +62,9 @@ def main() -> None:
             t0 = time.perf_counter()
             run_pgp(ds, p, "conf1", progress=lambda n: None)
             t_prog.append(time.perf_counter() - t0)
-        equal = np.array_equal(
-            plain[0].track_position, withp[0].track_position, equal_nan=True
-        ) and np.array_equal(plain[1].posterior, withp[1].posterior)
+        equal = np.array_equal(plain[0].track_position, withp[0].track_position, equal_nan=True) and np.array_equal(
+            plain[1].posterior, withp[1].posterior
+        )
         print(
             json.dumps(
                 {

@@ -112,9 +112,7 @@ def row(nodes, cell_m, epochs, ref_epochs, repeats, config="conf1", overrides=No
     run = jax.jit(pgp._filter)
 
     k = min(ref_epochs, ds.n_epochs)
-    cfg_d, prm_d, inp_d, lp0_d, _ = pgp.prepare(
-        ds, dataclasses.replace(p, likelihood="direct"), config
-    )
+    cfg_d, prm_d, inp_d, lp0_d, _ = pgp.prepare(ds, dataclasses.replace(p, likelihood="direct"), config)
     assert cfg_d.grid == cfg.grid
     sub_d, sub_f = slice_inputs(inp_d, k), slice_inputs(inp, k)
     ref = run.lower(cfg_d, prm_d, sub_d, lp0_d).compile()
@@ -146,9 +144,7 @@ def row(nodes, cell_m, epochs, ref_epochs, repeats, config="conf1", overrides=No
         "ref_windowed_epochs": int(np.asarray(out_f.windowed).sum()),
         "speedup": round(eps / ref_eps, 1),
         "rmse_diff_m": abs(final_rmse(e_f, truth) - final_rmse(e_d, truth)),
-        "max_pos_diff_m": float(np.max(np.linalg.norm(e_f[both] - e_d[both], axis=1)))
-        if both.any()
-        else float("nan"),
+        "max_pos_diff_m": float(np.max(np.linalg.norm(e_f[both] - e_d[both], axis=1))) if both.any() else float("nan"),
         "loadavg": [round(x, 2) for x in os.getloadavg()],
         "cpus": os.cpu_count(),
     }
@@ -163,8 +159,13 @@ def main(argv=None) -> int:
     ap.add_argument("--scale-epochs", type=int, default=300, help="epochs of 24/48-node rows")
     ap.add_argument("--ref-epochs", type=int, default=20, help="epochs of the direct reference")
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="PGP parameter override for every row (e.g. window_small_m=3.5)")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="PGP parameter override for every row (e.g. window_small_m=3.5)",
+    )
     a = ap.parse_args(argv)
     with_overrides(pgp.PGPParams(), parse_set(a.set))  # bad overrides fail before any row runs
     if a.quick:

@@ -38,9 +38,21 @@ def _one(tmp: Path, protocol: str, seed: int, n: int) -> dict:
     try:
         return kill_run(tmp, protocol, seed, n)
     except AssertionError as e:  # a broken snapshot or a run that never started: a failure, reported
-        return {"protocol": protocol, "seed": seed, "sent": 0, "partial": False, "read_complete": 0, "recovered": 0,
-                "prefix": False, "snapshot_at_kill": None, "snapshot_frames": None, "read_bytes": 0, "raw_bytes": 0,
-                "max_item": 0, "error": str(e)}
+        return {
+            "protocol": protocol,
+            "seed": seed,
+            "sent": 0,
+            "partial": False,
+            "read_complete": 0,
+            "recovered": 0,
+            "prefix": False,
+            "snapshot_at_kill": None,
+            "snapshot_frames": None,
+            "read_bytes": 0,
+            "raw_bytes": 0,
+            "max_item": 0,
+            "error": str(e),
+        }
 
 
 def main() -> int:
@@ -49,23 +61,52 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=4, help="recorders killed in parallel (default 4)")
     ap.add_argument("--seed0", type=int, default=1000, help="first seed (kill moments are drawn per seed)")
     ap.add_argument("--protocols", default="nlink,dwm1001-tlv,dwm1001-shell")
-    ap.add_argument("--seconds", type=float, default=4.0,
-                    help="stream length; the kill falls uniformly in it (default 4 s; longer streams put more "
-                         "kills after the first HDF5 snapshot)")
+    ap.add_argument(
+        "--seconds",
+        type=float,
+        default=4.0,
+        help="stream length; the kill falls uniformly in it (default 4 s; longer streams put more "
+        "kills after the first HDF5 snapshot)",
+    )
     a = ap.parse_args()
     items = {p: max(2, int(a.seconds * r)) for p, r in RATE.items()}
     jobs = [(p, a.seed0 + k) for p in a.protocols.split(",") for k in range(a.kills)]
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory() as tmp, ThreadPoolExecutor(a.workers) as pool:
         runs = list(pool.map(lambda j: _one(Path(tmp), j[0], j[1], items[j[0]]), jobs))
-    total = {"kills": 0, "sent": 0, "read": 0, "recovered": 0, "lost_being_decoded": 0, "failures": 0,
-             "kills_after_first_snapshot": 0, "bytes_read": 0, "bytes_in_raw_capture": 0}
+    total = {
+        "kills": 0,
+        "sent": 0,
+        "read": 0,
+        "recovered": 0,
+        "lost_being_decoded": 0,
+        "failures": 0,
+        "kills_after_first_snapshot": 0,
+        "bytes_read": 0,
+        "bytes_in_raw_capture": 0,
+    }
     per: dict[str, dict] = {}
     for r in runs:
-        ok = (r["prefix"] and r["read_complete"] - 1 <= r["recovered"] <= r["read_complete"]
-              and r["read_bytes"] - r["max_item"] <= r["raw_bytes"] <= r["read_bytes"])
-        row = {k: r.get(k) for k in ("protocol", "seed", "sent", "partial", "read_complete", "recovered",
-                                     "snapshot_at_kill", "snapshot_frames", "read_bytes", "raw_bytes")}
+        ok = (
+            r["prefix"]
+            and r["read_complete"] - 1 <= r["recovered"] <= r["read_complete"]
+            and r["read_bytes"] - r["max_item"] <= r["raw_bytes"] <= r["read_bytes"]
+        )
+        row = {
+            k: r.get(k)
+            for k in (
+                "protocol",
+                "seed",
+                "sent",
+                "partial",
+                "read_complete",
+                "recovered",
+                "snapshot_at_kill",
+                "snapshot_frames",
+                "read_bytes",
+                "raw_bytes",
+            )
+        }
         row["ok"] = bool(ok)
         if "error" in r:
             row["error"] = r["error"]
@@ -83,10 +124,20 @@ def main() -> int:
     for p, acc in per.items():
         print(json.dumps({"summary": p, **acc}))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
-    print(json.dumps({"summary": "all", **total, "seconds": round(time.monotonic() - t0, 1),
-                      "workers": a.workers, "seconds_per_stream": a.seconds, "machine": platform.machine(),
-                      "cpus": os.cpu_count(),
-                      "load_1min": load}))
+    print(
+        json.dumps(
+            {
+                "summary": "all",
+                **total,
+                "seconds": round(time.monotonic() - t0, 1),
+                "workers": a.workers,
+                "seconds_per_stream": a.seconds,
+                "machine": platform.machine(),
+                "cpus": os.cpu_count(),
+                "load_1min": load,
+            }
+        )
+    )
     return 1 if total["failures"] else 0
 
 

@@ -98,9 +98,7 @@ def main() -> None:
                 )
                 pl = S.plan(spec)
                 groups, group_of = S.build_groups([(ds, config)], spec)
-                it = S.execute(
-                    spec, pl, groups, group_of, np.zeros(pl.n_runs, bool), devices=[dev]
-                )
+                it = S.execute(spec, pl, groups, group_of, np.zeros(pl.n_runs, bool), devices=[dev])
                 t0 = time.perf_counter()
                 next(it)  # compile + first batch (metrics are host arrays: it has finished)
                 first = time.perf_counter() - t0

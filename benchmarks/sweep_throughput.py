@@ -48,9 +48,7 @@ def main() -> None:
     ap.add_argument("--epochs", type=int, default=100)
     ap.add_argument("--cell", type=float, default=0.5)
     ap.add_argument("--runs", default="1,4,16")
-    ap.add_argument(
-        "--cases", default="pgp:gaussian,pgp:mixture,parametric:gaussian,parametric:mixture"
-    )
+    ap.add_argument("--cases", default="pgp:gaussian,pgp:mixture,parametric:gaussian,parametric:mixture")
     ap.add_argument("--execution", default="auto", choices=("auto", "sequential", "vmap"))
     ap.add_argument("--batch-size", type=int, default=16, help="runs per device in one batch")
     ap.add_argument("--repeats", type=int, default=1, help="alternated timings, best of each")

@@ -56,9 +56,7 @@ def run(ds, method, params, label):
                 "mean_vertical_m": float(hz[ok].mean()) if ok.any() else None,
                 "estimated": int(ok.sum()),
                 "anchors": int(err.size),
-                "mean_reported_sd_m": float(
-                    np.sqrt(np.trace(res.covariance[ok], axis1=1, axis2=2) / 3).mean()
-                )
+                "mean_reported_sd_m": float(np.sqrt(np.trace(res.covariance[ok], axis1=1, axis2=2) / 3).mean())
                 if ok.any()
                 else None,
                 "seconds": round(t1 - t0, 2),
@@ -76,9 +74,7 @@ def main():
     ap.add_argument("files", nargs="*")
     ap.add_argument("--campus", action="store_true")
     ap.add_argument("--subsample", action="store_true")
-    ap.add_argument(
-        "--offset", action="store_true", help="also run nls with clock-offset estimation"
-    )
+    ap.add_argument("--offset", action="store_true", help="also run nls with clock-offset estimation")
     a = ap.parse_args()
     for f in a.files:
         ds = hdf5.read(f)

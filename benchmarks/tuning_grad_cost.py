@@ -39,8 +39,7 @@ def main() -> None:
     prob, _ = T.make_problem(ds, PGPParams(cell_m=a.cell), "conf1", a.objective)
     theta = T.theta_of(0.3, 0.25, 0.9, jnp.float64)
     row = {"epochs": a.epochs, "cell_m": a.cell, "objective": a.objective, "src": T.__file__}
-    for name, fn in (("forward", jax.jit(T.objective)),
-                     ("value_and_grad", jax.jit(jax.value_and_grad(T.objective)))):
+    for name, fn in (("forward", jax.jit(T.objective)), ("value_and_grad", jax.jit(jax.value_and_grad(T.objective)))):
         t0 = time.perf_counter()
         jax.block_until_ready(fn(theta, prob))
         t1 = time.perf_counter()

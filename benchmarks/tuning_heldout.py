@@ -37,8 +37,11 @@ from jaxcal.tune_eval import hard_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
 DWM = ROOT.parent / "shared" / "datasets" / "dwm1001-autocal"
-REAL = [("campus_sport/rich_samples", "campus_sport"), ("srvlab_ground", "srvlab_ground"),
-        ("3D_distribution", "3D_distribution")]
+REAL = [
+    ("campus_sport/rich_samples", "campus_sport"),
+    ("srvlab_ground", "srvlab_ground"),
+    ("3D_distribution", "3D_distribution"),
+]
 # family: (scenario, config, fixed params, overrides, train seed, test seeds)
 FAMILIES = {
     "torgau-conf1": ("torgau", "conf1", {}, {}, 0, [3, 4]),
@@ -62,8 +65,7 @@ def main() -> None:
     ap.add_argument("--families", default=",".join(FAMILIES))
     ap.add_argument("--no-real", action="store_true")
     ap.add_argument("--tests", type=int, default=2, help="test seeds per family (at most 2)")
-    ap.add_argument("--real-first", action="store_true",
-                    help="the dwm1001 rows before the families")
+    ap.add_argument("--real-first", action="store_true", help="the dwm1001 rows before the families")
     a = ap.parse_args()
     rows = []
 
@@ -82,13 +84,22 @@ def main() -> None:
             ds = import_recording("dwm1001-autocal", DWM / folder, yaml_path)
             t = time.perf_counter()
             res = tune(ds, {}, "conf1", objective_name="evidence", max_steps=a.max_steps)
-            emit({"family": f"dwm1001/{cfg}", "role": "self", "seed": -1,
-                  "accepted": res.accepted, "start": res.start, "tuned": res.tuned,
-                  "rmse_default_m": res.hard_before["rmse_m"],
-                  "rmse_tuned_m": (res.hard_after if res.accepted else res.hard_before)["rmse_m"],
-                  "heldout_default_m": res.hard_before.get("heldout_m"),
-                  "heldout_tuned_m": res.hard_after.get("heldout_m"),
-                  "steps": res.steps, "seconds": round(time.perf_counter() - t, 1)})
+            emit(
+                {
+                    "family": f"dwm1001/{cfg}",
+                    "role": "self",
+                    "seed": -1,
+                    "accepted": res.accepted,
+                    "start": res.start,
+                    "tuned": res.tuned,
+                    "rmse_default_m": res.hard_before["rmse_m"],
+                    "rmse_tuned_m": (res.hard_after if res.accepted else res.hard_before)["rmse_m"],
+                    "heldout_default_m": res.hard_before.get("heldout_m"),
+                    "heldout_tuned_m": res.hard_after.get("heldout_m"),
+                    "steps": res.steps,
+                    "seconds": round(time.perf_counter() - t, 1),
+                }
+            )
 
     if a.real_first:
         real()
@@ -96,45 +107,81 @@ def main() -> None:
         name, config, fixed, over, train, tests = FAMILIES[fam]
         tests = tests[: a.tests]
         t = time.perf_counter()
-        res = tune(sim(name, train, over, a.epochs), fixed, config, objective_name=a.objective,
-                   epochs=a.tune_epochs, cell_m=a.tune_cell, max_steps=a.max_steps)
-        emit({"family": fam, "role": "train", "seed": train, "accepted": res.accepted,
-              "start": res.start, "tuned": res.tuned, "hard_before": res.hard_before,
-              "hard_after": res.hard_after, "steps": res.steps, "message": res.message,
-              "rmse_default_m": res.hard_before["rmse_m"],
-              "rmse_tuned_m": (res.hard_after if res.accepted else res.hard_before)["rmse_m"],
-              "grad_epochs": res.settings["epochs"], "grad_cell_m": res.settings["cell_m"],
-              "seconds": round(time.perf_counter() - t, 1),
-              "seconds_gradient_phase": round(res.seconds["tune"], 1)})
+        res = tune(
+            sim(name, train, over, a.epochs),
+            fixed,
+            config,
+            objective_name=a.objective,
+            epochs=a.tune_epochs,
+            cell_m=a.tune_cell,
+            max_steps=a.max_steps,
+        )
+        emit(
+            {
+                "family": fam,
+                "role": "train",
+                "seed": train,
+                "accepted": res.accepted,
+                "start": res.start,
+                "tuned": res.tuned,
+                "hard_before": res.hard_before,
+                "hard_after": res.hard_after,
+                "steps": res.steps,
+                "message": res.message,
+                "rmse_default_m": res.hard_before["rmse_m"],
+                "rmse_tuned_m": (res.hard_after if res.accepted else res.hard_before)["rmse_m"],
+                "grad_epochs": res.settings["epochs"],
+                "grad_cell_m": res.settings["cell_m"],
+                "seconds": round(time.perf_counter() - t, 1),
+                "seconds_gradient_phase": round(res.seconds["tune"], 1),
+            }
+        )
         for s in tests:
             ds = sim(name, s, over, a.epochs)
             d = hard_metrics(ds, fixed, config)
             u = d if not res.accepted else hard_metrics(ds, {**fixed, **res.params}, config)
-            emit({"family": fam, "role": "test", "seed": s, "accepted": res.accepted,
-                  "rmse_default_m": d["rmse_m"], "rmse_tuned_m": u["rmse_m"],
-                  "nlpl_default": d["nlpl"], "nlpl_tuned": u["nlpl"]})
+            emit(
+                {
+                    "family": fam,
+                    "role": "test",
+                    "seed": s,
+                    "accepted": res.accepted,
+                    "rmse_default_m": d["rmse_m"],
+                    "rmse_tuned_m": u["rmse_m"],
+                    "nlpl_default": d["nlpl"],
+                    "nlpl_tuned": u["nlpl"],
+                }
+            )
     if not a.real_first:
         real()
     ev = [r for r in rows if "rmse_default_m" in r]
     print(f"\n<!-- {platform.node()} {os.cpu_count()} cpus, args {vars(a)} -->")
-    print("| family | role | seed | tuned values kept | RMSE defaults [m] | RMSE after tune [m] "
-          "| ratio |")
+    print("| family | role | seed | tuned values kept | RMSE defaults [m] | RMSE after tune [m] | ratio |")
     print("|---|---|---|---|---|---|---|")
     for r in ev:
         ratio = r["rmse_tuned_m"] / r["rmse_default_m"]
         r["ratio"] = ratio
-        print(f"| {r['family']} | {r['role']} | {r['seed']} | {'yes' if r['accepted'] else 'no'} "
-              f"| {r['rmse_default_m']:.3f} | {r['rmse_tuned_m']:.3f} | {ratio:.3f} |")
-    for label, sel in (("all rows", ev), ("held-out (test) rows", [r for r in ev
-                                                                 if r["role"] == "test"])):
+        print(
+            f"| {r['family']} | {r['role']} | {r['seed']} | {'yes' if r['accepted'] else 'no'} "
+            f"| {r['rmse_default_m']:.3f} | {r['rmse_tuned_m']:.3f} | {ratio:.3f} |"
+        )
+    for label, sel in (("all rows", ev), ("held-out (test) rows", [r for r in ev if r["role"] == "test"])):
         if not sel:
             continue
         d = np.array([r["rmse_default_m"] for r in sel])
         u = np.array([r["rmse_tuned_m"] for r in sel])
-        print(json.dumps({"rows": label, "n": len(sel), "median_default_m": float(np.median(d)),
-                          "median_tuned_m": float(np.median(u)),
-                          "worst_ratio": float(np.max(u / d)),
-                          "best_ratio": float(np.min(u / d))}))
+        print(
+            json.dumps(
+                {
+                    "rows": label,
+                    "n": len(sel),
+                    "median_default_m": float(np.median(d)),
+                    "median_tuned_m": float(np.median(u)),
+                    "worst_ratio": float(np.max(u / d)),
+                    "best_ratio": float(np.min(u / d)),
+                }
+            )
+        )
 
 
 if __name__ == "__main__":

@@ -40,12 +40,21 @@ def main() -> None:
             c = jax.jit(jax.grad(T.objective)).lower(theta, prob).compile()
             m = c.memory_analysis()
             total = m.temp_size_in_bytes + m.argument_size_in_bytes + m.output_size_in_bytes
-            print(json.dumps({
-                "epochs": k, "segment": seg or segment_length(k), "cell_m": a.cell,
-                "cells_side": prob.cfg.grid.n_side, "temp_mb": m.temp_size_in_bytes / 2**20,
-                "total_mb": total / 2**20,
-                "carry_mb": prob.logpost0.size * 8 / 2**20, "loadavg": os.getloadavg()[0]}),
-                flush=True)
+            print(
+                json.dumps(
+                    {
+                        "epochs": k,
+                        "segment": seg or segment_length(k),
+                        "cell_m": a.cell,
+                        "cells_side": prob.cfg.grid.n_side,
+                        "temp_mb": m.temp_size_in_bytes / 2**20,
+                        "total_mb": total / 2**20,
+                        "carry_mb": prob.logpost0.size * 8 / 2**20,
+                        "loadavg": os.getloadavg()[0],
+                    }
+                ),
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -45,8 +45,9 @@ def main() -> None:
     ap.add_argument("--folds", type=int, default=2)
     ap.add_argument("--quick", action="store_true", help="two scenarios, 2 x 2 x 2 grid")
     ap.add_argument("--scenarios", default=None, help="comma-separated labels (default: all)")
-    ap.add_argument("--grid", default=None,
-                    help='JSON {name: [values]} replacing the grid, e.g. \'{"sigma_v": [0.08]}\'')
+    ap.add_argument(
+        "--grid", default=None, help="JSON {name: [values]} replacing the grid, e.g. '{\"sigma_v\": [0.08]}'"
+    )
     a = ap.parse_args()
     scen = SCENARIOS[:1] + SCENARIOS[3:] if a.quick else SCENARIOS
     if a.scenarios:
@@ -62,13 +63,22 @@ def main() -> None:
             t = time.perf_counter()
             m = hard_metrics(ds, p, config)
             m["heldout_m"] = heldout_range_error(ds, p, config, n_folds=a.folds)
-            row = {"scenario": label, **dict(zip(grid, vals, strict=True)), **m,
-                   "seconds": round(time.perf_counter() - t, 2)}
+            row = {
+                "scenario": label,
+                **dict(zip(grid, vals, strict=True)),
+                **m,
+                "seconds": round(time.perf_counter() - t, 2),
+            }
             rows.append(row)
             print(json.dumps(row), flush=True)
         r = np.array([x["rmse_m"] for x in rows])
-        out = {"scenario": label, "epochs": ds.n_epochs, "cell_m": a.cell, "runs": len(rows),
-               "loadavg": os.getloadavg()[0]}
+        out = {
+            "scenario": label,
+            "epochs": ds.n_epochs,
+            "cell_m": a.cell,
+            "runs": len(rows),
+            "loadavg": os.getloadavg()[0],
+        }
         for k in ("nlpl", "heldout_m"):
             v = np.array([x[k] for x in rows])
             ok = np.isfinite(v) & np.isfinite(r)

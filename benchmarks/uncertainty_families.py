@@ -45,8 +45,9 @@ FAMILIES = {
 }
 
 
-def network(seed: int, n: int = 10, n_epochs: int = 400, pair_offset_m: float = 0.04, lost_nlos: float = 0.5,
-            walls=WALLS):
+def network(
+    seed: int, n: int = 10, n_epochs: int = 400, pair_offset_m: float = 0.04, lost_nlos: float = 0.5, walls=WALLS
+):
     """One family member: a `MeshDataset` (frame (0, 1, 2) in its configs) with per-pair offsets."""
     from jaxcal.data import MeshDataset
     from jaxcal.sim.mesh import MeshScenario, line_of_sight, simulate
@@ -62,17 +63,24 @@ def network(seed: int, n: int = 10, n_epochs: int = 400, pair_offset_m: float = 
     iu, ju = np.triu_indices(n, 1)
     nlos = ~los[iu, ju]
     lost = nlos & (rng.random(iu.size) < lost_nlos)
-    sc = MeshScenario(name=f"family-{seed}", hall=(30.0, 20.0), node_ids=tuple(f"n{k}" for k in range(n)),
-                      positions=tuple(map(tuple, xy)), walls=tuple(walls), n_epochs=n_epochs,
-                      never=tuple(zip(iu[lost].tolist(), ju[lost].tolist(), strict=False)),
-                      configs=(("f012", (0, 1, 2)),))
+    sc = MeshScenario(
+        name=f"family-{seed}",
+        hall=(30.0, 20.0),
+        node_ids=tuple(f"n{k}" for k in range(n)),
+        positions=tuple(map(tuple, xy)),
+        walls=tuple(walls),
+        n_epochs=n_epochs,
+        never=tuple(zip(iu[lost].tolist(), ju[lost].tolist(), strict=False)),
+        configs=(("f012", (0, 1, 2)),),
+    )
     ds = simulate(sc, seed=seed)
     off = np.zeros((n, n))
     off[iu, ju] = rng.normal(0.0, pair_offset_m, iu.size)
     off = off + off.T
     r = (ds.range.astype(np.float64) + off[None]).astype(np.float32)
-    return MeshDataset(name=ds.name, node_ids=ds.node_ids, time=ds.time, range=r, truth=ds.truth[:, :2],
-                       los=ds.los, configs=ds.configs)
+    return MeshDataset(
+        name=ds.name, node_ids=ds.node_ids, time=ds.time, range=r, truth=ds.truth[:, :2], los=ds.los, configs=ds.configs
+    )
 
 
 def rigid_nodes(ds) -> np.ndarray:
@@ -91,7 +99,7 @@ def rigid_nodes(ds) -> np.ndarray:
             if keep[a] and keep[b]:
                 u = (x[a] - x[b]) / np.linalg.norm(x[a] - x[b])
                 row = np.zeros(2 * n)
-                row[2 * a:2 * a + 2], row[2 * b:2 * b + 2] = u, -u
+                row[2 * a : 2 * a + 2], row[2 * b : 2 * b + 2] = u, -u
                 rows.append(row)
         return np.linalg.matrix_rank(np.array(rows)) if rows else 0
 
@@ -128,8 +136,12 @@ def node_figures(res, ds) -> list[dict]:
                 q = float("inf")
             if not np.all(np.linalg.eigvalsh(cf) > 0):
                 q = float("inf")  # an indefinite "covariance" holds nothing
-            row.update(dof=int(free.sum()), nees=q, inside=bool(q <= chi2.ppf(0.95, int(free.sum()))),
-                       trace_m2=float(np.trace(c)))
+            row.update(
+                dof=int(free.sum()),
+                nees=q,
+                inside=bool(q <= chi2.ppf(0.95, int(free.sum()))),
+                trace_m2=float(np.trace(c)),
+            )
         out.append(row)
     return out
 
@@ -156,13 +168,18 @@ def summarise(rows: list[dict]) -> dict:
     wrong_weak = sum(1 for r in weak if "nees" in r and not r["inside"])
     wrong_all = sum(1 for net in rows for r in net["nodes"] if "nees" in r and not r["inside"])
     return {
-        "networks": len(rows), "well_nodes": len(good), "coverage95_well": cover,
+        "networks": len(rows),
+        "well_nodes": len(good),
+        "coverage95_well": cover,
         "nees_dof_median_clean": float(np.median(clean)) if clean else float("nan"),
-        "nees_dof_worst_clean": float(np.max(clean)) if clean else float("nan"), "clean_networks": len(clean),
+        "nees_dof_worst_clean": float(np.max(clean)) if clean else float("nan"),
+        "clean_networks": len(clean),
         "nees_dof_median_all": float(np.median(per_net)) if per_net else float("nan"),
         "nees_dof_worst_all": float(np.max(per_net)) if per_net else float("nan"),
-        "weak_nodes": len(weak), "weak_placed": sum(1 for r in weak if r["placed"]),
-        "weak_confidently_wrong": wrong_weak, "confidently_wrong_all": wrong_all,
+        "weak_nodes": len(weak),
+        "weak_placed": sum(1 for r in weak if r["placed"]),
+        "weak_confidently_wrong": wrong_weak,
+        "confidently_wrong_all": wrong_all,
     }
 
 
@@ -200,13 +217,17 @@ def main(argv=None) -> int:
                 r["well"] = bool(well[r["node"]])
             used = [r for r in nodes if r["well"] and "nees" in r]
             dof = sum(r["dof"] for r in used)
-            row = {"seed": seed, "method": m, "seconds": round(time.perf_counter() - t0, 1),
-                   "all_well": bool(well[np.arange(len(well)) != 0].all()),
-                   "nees_per_dof": sum(r["nees"] for r in used) / dof if dof else float("nan"),
-                   "coverage95": float(np.mean([r["inside"] for r in used])) if used else float("nan"),
-                   "rmse_m": float(np.sqrt(np.mean([r["error_m"] ** 2 for r in used]))) if used else float("nan"),
-                   "pred_rmse_m": float(np.sqrt(np.mean([r["trace_m2"] for r in used]))) if used else float("nan"),
-                   "nodes": nodes}
+            row = {
+                "seed": seed,
+                "method": m,
+                "seconds": round(time.perf_counter() - t0, 1),
+                "all_well": bool(well[np.arange(len(well)) != 0].all()),
+                "nees_per_dof": sum(r["nees"] for r in used) / dof if dof else float("nan"),
+                "coverage95": float(np.mean([r["inside"] for r in used])) if used else float("nan"),
+                "rmse_m": float(np.sqrt(np.mean([r["error_m"] ** 2 for r in used]))) if used else float("nan"),
+                "pred_rmse_m": float(np.sqrt(np.mean([r["trace_m2"] for r in used]))) if used else float("nan"),
+                "nodes": nodes,
+            }
             table[m].append(row)
             print(json.dumps({k: v for k, v in row.items() if k != "nodes"}), flush=True)
     for m in methods:

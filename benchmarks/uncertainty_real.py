@@ -47,9 +47,23 @@ def datasets(tmp: Path, names: list[str]):
             print(f"# {SHARED} not found: {name} skipped", file=sys.stderr)
             continue
         dst = tmp / f"{name}.h5"
-        proc = subprocess.run([sys.executable, "-m", "jaxcal.cli", "import", "dwm1001-autocal", str(SHARED / folder),
-                               str(SHARED / "nodes_cfg" / f"{cfg}.yaml"), "-o", str(dst), "--name", name],
-                              capture_output=True, text=True)
+        proc = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "jaxcal.cli",
+                "import",
+                "dwm1001-autocal",
+                str(SHARED / folder),
+                str(SHARED / "nodes_cfg" / f"{cfg}.yaml"),
+                "-o",
+                str(dst),
+                "--name",
+                name,
+            ],
+            capture_output=True,
+            text=True,
+        )
         if proc.returncode != 0:
             print(f"# import {name} failed: {proc.stderr.strip()}", file=sys.stderr)
             continue
@@ -104,10 +118,20 @@ def main(argv=None) -> int:
                         if free.any():
                             q = e[free] @ np.linalg.solve(c[np.ix_(free, free)], e[free])
                             wrong += int(q > chi2.ppf(0.95, int(free.sum())))
-                    print(json.dumps({"dataset": name, "config": cname, "method": m, "dim": dim,
-                                      "seconds": round(time.perf_counter() - t0, 1), "confidently_wrong": wrong,
-                                      **{k: (round(v, 4) if isinstance(v, float) else v) for k, v in cc.items()}}),
-                          flush=True)
+                    print(
+                        json.dumps(
+                            {
+                                "dataset": name,
+                                "config": cname,
+                                "method": m,
+                                "dim": dim,
+                                "seconds": round(time.perf_counter() - t0, 1),
+                                "confidently_wrong": wrong,
+                                **{k: (round(v, 4) if isinstance(v, float) else v) for k, v in cc.items()},
+                            }
+                        ),
+                        flush=True,
+                    )
     return 0
 
 

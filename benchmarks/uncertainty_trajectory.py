@@ -41,8 +41,12 @@ def real_datasets():
             out.append((f"hanyang-{cls}", lambda d=d: import_hanyang(d)))
     d = SHARED / "cuhksz-planar" / "Dynamic"
     if d.exists():
-        out.append(("cuhksz-planar", lambda d=d: import_cuhksz(d / "UWB_dynamic_exp_mid.csv",
-                                                              d / "motion_capture_dynamic_exp_mid.csv")))
+        out.append(
+            (
+                "cuhksz-planar",
+                lambda d=d: import_cuhksz(d / "UWB_dynamic_exp_mid.csv", d / "motion_capture_dynamic_exp_mid.csv"),
+            )
+        )
     return out
 
 
@@ -54,13 +58,22 @@ def anchor_figures(res, truth) -> list[dict]:
         if not fin.any() or not np.isfinite(t).all():
             continue
         e = x - t
-        row = {"anchor": k, "error_m": float(np.linalg.norm(e[fin])), "h_error_m": float(np.linalg.norm(e[:2])),
-               "v_error_m": float(abs(e[2])) if fin[2] else float("nan"), "nan_axes": int((~fin).sum())}
+        row = {
+            "anchor": k,
+            "error_m": float(np.linalg.norm(e[fin])),
+            "h_error_m": float(np.linalg.norm(e[:2])),
+            "v_error_m": float(abs(e[2])) if fin[2] else float("nan"),
+            "nan_axes": int((~fin).sum()),
+        }
         cf = c[np.ix_(fin, fin)]
         if np.isfinite(cf).all():
             q = float(e[fin] @ np.linalg.lstsq(cf, e[fin], rcond=None)[0])
-            row.update(nees=q, dof=int(fin.sum()), inside=bool(q <= chi2.ppf(0.95, int(fin.sum()))),
-                       sd_m=float(np.sqrt(np.trace(cf))))
+            row.update(
+                nees=q,
+                dof=int(fin.sum()),
+                inside=bool(q <= chi2.ppf(0.95, int(fin.sum()))),
+                sd_m=float(np.sqrt(np.trace(cf))),
+            )
         rows.append(row)
     return rows
 
@@ -68,13 +81,17 @@ def anchor_figures(res, truth) -> list[dict]:
 def line(label, method, rows):
     used = [r for r in rows if "nees" in r]
     dof = sum(r["dof"] for r in used)
-    return {"dataset": label, "method": method, "anchors": len(rows),
-            "nees_per_dof": sum(r["nees"] for r in used) / dof if dof else float("nan"),
-            "coverage95": float(np.mean([r["inside"] for r in used])) if used else float("nan"),
-            "rmse_m": float(np.sqrt(np.mean([r["error_m"] ** 2 for r in used]))) if used else float("nan"),
-            "pred_rmse_m": float(np.sqrt(np.mean([r["sd_m"] ** 2 for r in used]))) if used else float("nan"),
-            "nan_axes": sum(r["nan_axes"] for r in rows),
-            "worst": max(used, key=lambda r: r["nees"], default=None)}
+    return {
+        "dataset": label,
+        "method": method,
+        "anchors": len(rows),
+        "nees_per_dof": sum(r["nees"] for r in used) / dof if dof else float("nan"),
+        "coverage95": float(np.mean([r["inside"] for r in used])) if used else float("nan"),
+        "rmse_m": float(np.sqrt(np.mean([r["error_m"] ** 2 for r in used]))) if used else float("nan"),
+        "pred_rmse_m": float(np.sqrt(np.mean([r["sd_m"] ** 2 for r in used]))) if used else float("nan"),
+        "nan_axes": sum(r["nan_axes"] for r in rows),
+        "worst": max(used, key=lambda r: r["nees"], default=None),
+    }
 
 
 def main(argv=None) -> int:
@@ -110,10 +127,18 @@ def main(argv=None) -> int:
     for m in methods:
         nees = [x["nees_per_dof"] for x in sims[m] if np.isfinite(x["nees_per_dof"])]
         cov = [x["coverage95"] for x in sims[m] if np.isfinite(x["coverage95"])]
-        print(json.dumps({"summary": m, "campaigns": len(sims[m]),
-                          "coverage95_mean": float(np.mean(cov)) if cov else None,
-                          "nees_dof_median": float(np.median(nees)) if nees else None,
-                          "nees_dof_worst": float(np.max(nees)) if nees else None}), flush=True)
+        print(
+            json.dumps(
+                {
+                    "summary": m,
+                    "campaigns": len(sims[m]),
+                    "coverage95_mean": float(np.mean(cov)) if cov else None,
+                    "nees_dof_median": float(np.median(nees)) if nees else None,
+                    "nees_dof_worst": float(np.max(nees)) if nees else None,
+                }
+            ),
+            flush=True,
+        )
     return 0
 
 

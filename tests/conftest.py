@@ -89,7 +89,11 @@ def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600, env: dict
         e.update(env)
     return subprocess.run(
         [sys.executable, "-m", "jaxcal.cli", *map(str, args)],
-        capture_output=True, text=True, cwd=cwd, timeout=timeout, env=e,
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=timeout,
+        env=e,
     )
 
 

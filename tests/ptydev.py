@@ -95,8 +95,17 @@ def nlink_frames(n: int, seed: int = 0, first: int = 0) -> list[bytes]:
     for i in range(first, first + n):
         me = i % 4
         t = 1000 + 10 * i
-        nodes = [(0, j, int(np.hypot(pos[me][0] - pos[j][0], pos[me][1] - pos[j][1])) + rng.randint(-30, 30),
-                  rng.randint(160, 200), rng.randint(150, 170)) for j in range(4) if j != me]
+        nodes = [
+            (
+                0,
+                j,
+                int(np.hypot(pos[me][0] - pos[j][0], pos[me][1] - pos[j][1])) + rng.randint(-30, 30),
+                rng.randint(160, 200),
+                rng.randint(150, 170),
+            )
+            for j in range(4)
+            if j != me
+        ]
         out.append(E.nodeframe3(0, me, t, t, 4900, nodes))
     return out
 
@@ -105,17 +114,26 @@ def tlv_responses(n: int, seed: int = 0) -> list[bytes]:
     """dwm_loc_get answers of a tag ranging three anchors; consecutive answers differ (no duplicates)."""
     rng = random.Random(seed)
     anchors = [(0x1151, (5000, 8000, 2250)), (0x0CA8, (0, 8000, 2250)), (0x111C, (5000, 0, 2250))]
-    return [E.loc_get_tag((2500, 2000, 1700), 90,
-                          [(a, 3000 + 7 * i + rng.randint(0, 5), 100, p, 100) for a, p in anchors])
-            for i in range(n)]
+    return [
+        E.loc_get_tag((2500, 2000, 1700), 90, [(a, 3000 + 7 * i + rng.randint(0, 5), 100, p, 100) for a, p in anchors])
+        for i in range(n)
+    ]
 
 
 def lec_lines(n: int, seed: int = 0) -> list[bytes]:
     """Shell `lec` lines (CRLF) of a tag ranging two anchors."""
     rng = random.Random(seed)
-    return [E.lec_line([("0CA8", (0, 8, 2.25), 6.5 + rng.randint(0, 50) / 100),
-                        ("111C", (5, 0, 2.25), 3.2 + rng.randint(0, 50) / 100)], (1, 2, 3), 90)
-            for _ in range(n)]
+    return [
+        E.lec_line(
+            [
+                ("0CA8", (0, 8, 2.25), 6.5 + rng.randint(0, 50) / 100),
+                ("111C", (5, 0, 2.25), 3.2 + rng.randint(0, 50) / 100),
+            ],
+            (1, 2, 3),
+            90,
+        )
+        for _ in range(n)
+    ]
 
 
 def payloads(protocol: str, n: int, seed: int) -> list[bytes]:
@@ -161,8 +179,19 @@ def rebaud(data: bytes, rx_bit_per_tx_bit: float) -> bytes:
 def start_recorder(port: str, out: Path, protocol: str, *extra) -> subprocess.Popen:
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT / "src"))
     env.pop("JAXCAL_DEBUG", None)
-    args = [sys.executable, "-m", "jaxcal.cli", "record", "--port", port, "--protocol", protocol, "-o", str(out),
-            *map(str, extra)]
+    args = [
+        sys.executable,
+        "-m",
+        "jaxcal.cli",
+        "record",
+        "--port",
+        port,
+        "--protocol",
+        protocol,
+        "-o",
+        str(out),
+        *map(str, extra),
+    ]
     if protocol == "dwm1001-shell":
         args.append("--init")
     if protocol == "dwm1001-tlv":
@@ -297,7 +326,19 @@ def kill_run(tmp: Path, protocol: str, seed: int, n_items: int) -> dict:
         hdf5.read(out)
         snap = replay(out, None, {}).raw
         assert snap == got[: len(snap)], "the snapshot is not a prefix of the journal"
-    return {"protocol": protocol, "seed": seed, "sent": kill_at, "partial": split > 0, "read_complete": complete,
-            "recovered": len(got), "prefix": got == expected[: len(got)], "snapshot_at_kill": snapshot,
-            "snapshot_frames": None if snap is None else len(snap), "raw_bytes": len(raw), "read_bytes": read,
-            "max_item": max(map(len, item)), "stderr": err, "out": out}
+    return {
+        "protocol": protocol,
+        "seed": seed,
+        "sent": kill_at,
+        "partial": split > 0,
+        "read_complete": complete,
+        "recovered": len(got),
+        "prefix": got == expected[: len(got)],
+        "snapshot_at_kill": snapshot,
+        "snapshot_frames": None if snap is None else len(snap),
+        "raw_bytes": len(raw),
+        "read_bytes": read,
+        "max_item": max(map(len, item)),
+        "stderr": err,
+        "out": out,
+    }

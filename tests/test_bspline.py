@@ -14,9 +14,7 @@ def test_cubic_blending_matrix_is_the_textbook_one():
     np.testing.assert_allclose(m, ref, atol=1e-12)
     for k in (2, 3, 4, 5):  # partition of unity: the weights sum to 1 for every u
         np.testing.assert_allclose(bspline.blending_matrix(k).sum(axis=0), np.eye(k)[0], atol=1e-12)
-        np.testing.assert_allclose(
-            bspline.cumulative_blending_matrix(k)[0], np.eye(k)[0], atol=1e-12
-        )
+        np.testing.assert_allclose(bspline.cumulative_blending_matrix(k)[0], np.eye(k)[0], atol=1e-12)
 
 
 @pytest.mark.parametrize("order", [2, 3, 4, 5])
@@ -45,9 +43,7 @@ def test_gaps_split_the_stream_and_evaluate_to_nan():
 def test_quaternion_rotation_and_slerp():
     yaw = np.pi / 2
     q = jnp.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
-    np.testing.assert_allclose(
-        poses.quat_rotate(q, jnp.array([1.0, 0.0, 0.0])), [0.0, 1.0, 0.0], atol=1e-12
-    )
+    np.testing.assert_allclose(poses.quat_rotate(q, jnp.array([1.0, 0.0, 0.0])), [0.0, 1.0, 0.0], atol=1e-12)
     qs = jnp.array([[0.0, 0.0, 0.0, 1.0], q])
     mid = poses.slerp_orientation(jnp.array([0.0, 1.0]), qs, jnp.array([0.5]))[0]
     np.testing.assert_allclose(mid, [0.0, 0.0, np.sin(yaw / 4), np.cos(yaw / 4)], atol=1e-12)

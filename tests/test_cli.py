@@ -45,8 +45,9 @@ def test_bad_input_one_line(tmp_path):
     assert_one_line_error(run_cli("nosuchcommand"), "invalid choice")
     m = hdf5.write(tmp_path / "m.h5", small_mesh())
     assert_one_line_error(run_cli("calibrate", m, "--method", "nosuch", "-o", tmp_path / "r.h5"), "unknown method")
-    assert_one_line_error(run_cli("calibrate", m, "--method", "cf", "-o", tmp_path / "r.h5", "--set", "oops"),
-                          "KEY=VALUE")
+    assert_one_line_error(
+        run_cli("calibrate", m, "--method", "cf", "-o", tmp_path / "r.h5", "--set", "oops"), "KEY=VALUE"
+    )
 
 
 @pytest.mark.parametrize(

@@ -66,11 +66,19 @@ def test_import_refuses_ids_that_do_not_match(tmp_path, rng):
 def test_real_ranges_with_another_sites_layout(tmp_path):
     root = shared_path("datasets", "dwm1001-autocal")
     ranges = root / "srvlab_ground"
-    p = run_cli("import", "dwm1001-autocal", ranges, root / "nodes_cfg" / "campus_sport.yaml", "-o",
-                tmp_path / "mixed.h5")
+    p = run_cli(
+        "import", "dwm1001-autocal", ranges, root / "nodes_cfg" / "campus_sport.yaml", "-o", tmp_path / "mixed.h5"
+    )
     assert_one_line_error(p, "4.58 m")
-    p = run_cli("import", "dwm1001-autocal", ranges, root / "nodes_cfg" / "srvlab_ground.yaml", "-o",
-                tmp_path / "srv.h5", "--json")
+    p = run_cli(
+        "import",
+        "dwm1001-autocal",
+        ranges,
+        root / "nodes_cfg" / "srvlab_ground.yaml",
+        "-o",
+        tmp_path / "srv.h5",
+        "--json",
+    )
     assert p.returncode == 0 and json.loads(p.stdout)["layout_median_m"] < 0.2
     info = run_cli("info", tmp_path / "srv.h5")
     assert "time: epoch index 1..99" in info.stdout
@@ -100,18 +108,30 @@ def test_info_and_validate_on_every_kind_of_file(tmp_path):
     n = 4
     _write_store(
         tmp_path / "sweep.h5",
-        {"format": FORMAT, "spec_id": "x", "spec_toml": "", "method": "pgp", "epochs": -1,
-         "fixed_params": "{}", "swept": "sigma_r"},
-        {"scenario": np.array(["small"] * n), "config": np.array([""] * n), "seed": np.arange(n),
-         "param_sigma_r": np.array([0.1, 0.2, 0.1, 0.2])},
+        {
+            "format": FORMAT,
+            "spec_id": "x",
+            "spec_toml": "",
+            "method": "pgp",
+            "epochs": -1,
+            "fixed_params": "{}",
+            "swept": "sigma_r",
+        },
+        {
+            "scenario": np.array(["small"] * n),
+            "config": np.array([""] * n),
+            "seed": np.arange(n),
+            "param_sigma_r": np.array([0.1, 0.2, 0.1, 0.2]),
+        },
         {"rmse_m": np.array([0.5, 0.4, np.nan, np.nan])},
         np.array([True, True, False, False]),
     )
     j = JournalWriter(tmp_path / "rec.h5.journal", {"protocol": "nlink"})
     j.append(b"\x55\x01", 0.5)
     j.close()
-    (tmp_path / "p.json").write_text(json.dumps({"params": {"sigma_r": 0.4, "tau": 0.8},
-                                                 "tuning": {"method": "pgp", "dataset": "d"}}))
+    (tmp_path / "p.json").write_text(
+        json.dumps({"params": {"sigma_r": 0.4, "tau": 0.8}, "tuning": {"method": "pgp", "dataset": "d"}})
+    )
     (tmp_path / "bad.json").write_text(json.dumps({"params": {"nosuch": 1}, "tuning": {"method": "pgp"}}))
 
     s = json.loads(run_cli("info", tmp_path / "sweep.h5", "--json").stdout)

@@ -61,9 +61,16 @@ def test_overwrite_is_allowed_and_said_and_files_get_umask_permissions(mesh, tmp
     assert stat.S_IMODE(out.stat().st_mode) == 0o666 & ~_umask()
     # another umask: the files follow it (simulate writes through the same helper)
     q = tmp_path / "s.h5"
-    p = subprocess.run(["sh", "-c", f'umask 077; exec "{sys.executable}" -m jaxcal.cli simulate mesh '
-                        f'--scenario small -o "{q}" --quiet'], capture_output=True, text=True,
-                       env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    p = subprocess.run(
+        [
+            "sh",
+            "-c",
+            f'umask 077; exec "{sys.executable}" -m jaxcal.cli simulate mesh --scenario small -o "{q}" --quiet',
+        ],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "JAX_PLATFORMS": "cpu"},
+    )
     assert p.returncode == 0 and p.stdout == "", (p.stdout, p.stderr)
     assert stat.S_IMODE(q.stat().st_mode) == 0o600
     _no_temporaries(tmp_path)
@@ -134,10 +141,13 @@ def test_config_name_or_node_ids(mesh, tmp_path):
     np.testing.assert_allclose(ra.position, rb.position)
     c = run_cli("calibrate", mesh, "--method", "cf", "-o", tmp_path / "c.h5", "--config", "n2,n0,n3")
     assert c.returncode == 0 and hdf5.read(tmp_path / "c.h5").frame == "anchors:2,0,3"
-    assert_one_line_error(run_cli("calibrate", mesh, "--method", "cf", "-o", tmp_path / "d.h5", "--config",
-                                  "n0,n1,zz"), "unknown node id(s) zz")
-    assert_one_line_error(run_cli("tune", mesh, "-o", tmp_path / "p.json", "--config", "n0,n0,n1"),
-                          "three distinct node ids")
+    assert_one_line_error(
+        run_cli("calibrate", mesh, "--method", "cf", "-o", tmp_path / "d.h5", "--config", "n0,n1,zz"),
+        "unknown node id(s) zz",
+    )
+    assert_one_line_error(
+        run_cli("tune", mesh, "-o", tmp_path / "p.json", "--config", "n0,n0,n1"), "three distinct node ids"
+    )
     assert not (tmp_path / "d.h5").exists()
 
 
@@ -182,7 +192,12 @@ def test_resolve_config_in_process():
     assert name == "n3,n1,n0" and d2.config(name) == (3, 1, 0) and dict(d2.configs)["conf1"] == (0, 1, 2)
     assert resolve_config(ds, "2,0,1")[0].config("2,0,1") == (2, 0, 1)  # indices when they are not ids
     assert parse_config("a,b,c") == ("a", "b", "c")
-    for bad, msg in (("nosuch", "known: conf1"), ("n0,n1", "three distinct"), ("n0,n1,n1", "three distinct"),
-                     ("", "empty"), ("n0,n1,x9", "unknown node id")):
+    for bad, msg in (
+        ("nosuch", "known: conf1"),
+        ("n0,n1", "three distinct"),
+        ("n0,n1,n1", "three distinct"),
+        ("", "empty"),
+        ("n0,n1,x9", "unknown node id"),
+    ):
         with pytest.raises(JaxcalError, match=msg):
             resolve_config(ds, bad)

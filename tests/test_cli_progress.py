@@ -27,17 +27,28 @@ def test_report_shows_a_section_bar_only_when_asked(tmp_path):
     n = s.size
     _write_store(
         tmp_path / "sweep.h5",
-        {"format": FORMAT, "spec_id": "x", "spec_toml": "", "method": "pgp", "epochs": -1,
-         "fixed_params": "{}", "swept": "sigma_r,tau"},
-        {"scenario": np.array(["small"] * n), "config": np.array([""] * n), "seed": np.zeros(n, np.int64),
-         "param_sigma_r": s.ravel(), "param_tau": t.ravel()},
+        {
+            "format": FORMAT,
+            "spec_id": "x",
+            "spec_toml": "",
+            "method": "pgp",
+            "epochs": -1,
+            "fixed_params": "{}",
+            "swept": "sigma_r,tau",
+        },
+        {
+            "scenario": np.array(["small"] * n),
+            "config": np.array([""] * n),
+            "seed": np.zeros(n, np.int64),
+            "param_sigma_r": s.ravel(),
+            "param_tau": t.ravel(),
+        },
         {"rmse_m": np.array([0.5, 0.4, 0.3, 0.6]), "final_rmse_m": np.full(n, 0.3), "nlpl": np.ones(n)},
         np.ones(n, bool),
     )
     shown = run_cli("report", tmp_path / "sweep.h5", "-o", tmp_path / "a", env={"JAXCAL_PROGRESS": "1"})
     assert shown.returncode == 0, shown.stderr
     assert "report: 100%" in shown.stderr.replace("\r", "\n") and "1/1" in shown.stderr
-    quiet = run_cli("report", tmp_path / "sweep.h5", "-o", tmp_path / "b", "--quiet",
-                    env={"JAXCAL_PROGRESS": "1"})
+    quiet = run_cli("report", tmp_path / "sweep.h5", "-o", tmp_path / "b", "--quiet", env={"JAXCAL_PROGRESS": "1"})
     assert quiet.returncode == 0 and quiet.stderr == "" and quiet.stdout == ""
     assert (tmp_path / "b" / "index.html").is_file()

@@ -27,8 +27,14 @@ JAX_LOG = ("Compiling ", "Finished ", "Persistent compilation cache")
 def _start(args, cwd, env=None):
     e = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONUNBUFFERED": "1", **(env or {})}
     e.pop("JAXCAL_DEBUG", None)
-    p = subprocess.Popen([sys.executable, "-m", "jaxcal.cli", *map(str, args)], cwd=cwd, env=e,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(
+        [sys.executable, "-m", "jaxcal.cli", *map(str, args)],
+        cwd=cwd,
+        env=e,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     lines: queue.Queue = queue.Queue()
     kept: list[str] = []
 
@@ -64,8 +70,9 @@ def _check_stopped(p, kept, sig, folder: Path, output: Path | None = None, befor
     time.sleep(0.2)  # let the reader thread take the last line
     ours = [x.strip() for x in kept if x.strip() and not x.startswith(JAX_LOG) and not x.startswith(" ")]
     assert rc == (130 if sig == signal.SIGINT else 143), (rc, "".join(kept)[-2000:])
-    assert len(ours) == 1 and ours[0] == ("jaxcal: interrupted" if sig == signal.SIGINT
-                                          else "jaxcal: terminated (SIGTERM)"), ours
+    assert len(ours) == 1 and ours[0] == (
+        "jaxcal: interrupted" if sig == signal.SIGINT else "jaxcal: terminated (SIGTERM)"
+    ), ours
     if output is not None:
         assert output.read_bytes() == before  # the existing output is untouched
     left = [x.name for x in folder.rglob("*") if x.name.endswith(".tmp")]
@@ -94,8 +101,7 @@ def test_signal_during_compilation_and_inside_the_scan(tmp_path):
 
 def test_signal_while_tracing_in_demo(tmp_path):
     """`demo` crashed with a segmentation fault on Ctrl-C: now one line and 130 at its first compile."""
-    p, lines, kept = _start(["demo", "-o", tmp_path / "demo", "--methods", "pgp"], tmp_path,
-                            {"JAX_LOG_COMPILES": "1"})
+    p, lines, kept = _start(["demo", "-o", tmp_path / "demo", "--methods", "pgp"], tmp_path, {"JAX_LOG_COMPILES": "1"})
     _wait_for(lines, "Compiling ")
     p.send_signal(signal.SIGINT)
     _check_stopped(p, kept, signal.SIGINT, tmp_path)
@@ -121,8 +127,13 @@ def test_signal_while_writing(tmp_path, sig):
     command line's signal watcher and `jaxcal.io.atomic`) with a write held open."""
     out = tmp_path / "out.h5"
     out.write_bytes(b"old")
-    p = subprocess.Popen([sys.executable, "-c", _WRITER, str(out)], stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    p = subprocess.Popen(
+        [sys.executable, "-c", _WRITER, str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "JAX_PLATFORMS": "cpu"},
+    )
     assert p.stdout.readline().strip() == "writing"
     assert [x.name for x in tmp_path.iterdir() if x.name.endswith(".tmp")]  # the temporary exists now
     p.send_signal(sig)

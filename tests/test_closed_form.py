@@ -46,9 +46,7 @@ def _reference_epoch(d, anchors, min_refs=3, min_ratio=0.1, anchors_only=False):
         for i in range(n):
             if i in before:
                 continue
-            refs = [
-                j for j in before if np.isfinite(d[i, j]) and (not anchors_only or j in anchors)
-            ]
+            refs = [j for j in before if np.isfinite(d[i, j]) and (not anchors_only or j in anchors)]
             if len(refs) < min_refs:
                 continue
             p = np.array([before[j] for j in refs])
@@ -108,9 +106,7 @@ def test_fast_path_equals_slow_reference_on_noisy_data():
         fast = cf.place_epochs(d, anchors, params)
         slow = np.stack(
             [
-                _reference_epoch(
-                    d[k], anchors, params.min_refs, params.min_spread_ratio, params.anchors_only
-                )
+                _reference_epoch(d[k], anchors, params.min_refs, params.min_spread_ratio, params.anchors_only)
                 for k in range(d.shape[0])
             ]
         )
@@ -196,9 +192,7 @@ def test_parameters_do_not_recompile():
     d = _distances(truth, 3)
     cf.place_epochs(d, (0, 1, 2))
     before = cf._place_all._cache_size()
-    cf.place_epochs(
-        d, (1, 2, 3), cf.ClosedFormParams(min_refs=4, min_spread_ratio=0.3, anchors_only=True)
-    )
+    cf.place_epochs(d, (1, 2, 3), cf.ClosedFormParams(min_refs=4, min_spread_ratio=0.3, anchors_only=True))
     assert cf._place_all._cache_size() == before
 
 
@@ -221,8 +215,14 @@ def test_thin_frame_triangle_is_placed_through_a_well_spread_proxy(seed):
     others = rng.uniform((-5.0, -12.0), (25.0, 12.0), (7, 2))
     truth = np.vstack([frame, others])
     d = _distances(truth, 40, rng, noise=0.05)
-    ds = MeshDataset(name="thin", node_ids=[f"n{i}" for i in range(10)], time=np.arange(40) * 0.1,
-                     range=d, truth=truth, configs={"c": (0, 1, 2)})
+    ds = MeshDataset(
+        name="thin",
+        node_ids=[f"n{i}" for i in range(10)],
+        time=np.arange(40) * 0.1,
+        range=d,
+        truth=truth,
+        configs={"c": (0, 1, 2)},
+    )
     own = cf.place_epochs(cf.symmetrise(d), (0, 1, 2))
     assert np.isfinite(own[:, 3:]).all(axis=2).mean() < 0.5  # the paper's rule stalls
     res = cf.calibrate(ds, config="c")

@@ -19,10 +19,8 @@ PROBE = (
 
 
 def probe(env_value, tmp_path):
-    env = {"JAXCAL_CACHE_DIR": str(env_value), "JAX_PLATFORMS": "cpu", "PATH": "/usr/bin:/bin",
-           "HOME": str(tmp_path)}
-    out = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, env=env,
-                         timeout=300)
+    env = {"JAXCAL_CACHE_DIR": str(env_value), "JAX_PLATFORMS": "cpu", "PATH": "/usr/bin:/bin", "HOME": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, env=env, timeout=300)
     assert out.returncode == 0, out.stderr
     return out.stdout.split()
 

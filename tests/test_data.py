@@ -19,10 +19,17 @@ def small_mesh(k=4, n=4, **kw):
 
 def small_traj(**kw):
     args = dict(
-        name="tr", anchor_ids=["A", "B"], tag_ids=["T"], lever_arm=np.zeros((1, 3)),
-        pose_time=np.arange(5.0), pose_position=np.zeros((5, 3)),
-        range_time=np.array([0.5, 1.0, 2.0]), range_anchor=[0, 1, 0], range_tag=[0, 0, 0],
-        range=[1.0, 2.0, 3.0], anchor_truth=np.ones((2, 3)),
+        name="tr",
+        anchor_ids=["A", "B"],
+        tag_ids=["T"],
+        lever_arm=np.zeros((1, 3)),
+        pose_time=np.arange(5.0),
+        pose_position=np.zeros((5, 3)),
+        range_time=np.array([0.5, 1.0, 2.0]),
+        range_anchor=[0, 1, 0],
+        range_tag=[0, 0, 0],
+        range=[1.0, 2.0, 3.0],
+        anchor_truth=np.ones((2, 3)),
     )
     args.update(kw)
     return TrajectoryDataset(**args)

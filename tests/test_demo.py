@@ -14,9 +14,7 @@ from jaxcal.sim.mesh import simulate
 
 def test_embedded_dataset_equals_resimulation():
     path = demo.embedded_dataset_path()
-    assert path.is_file(), (
-        f"{path} is missing: run `jaxcal simulate mesh -o data/torgau.h5 --seed {demo.DEMO_SEED}`"
-    )
+    assert path.is_file(), f"{path} is missing: run `jaxcal simulate mesh -o data/torgau.h5 --seed {demo.DEMO_SEED}`"
     shipped = hdf5.read(path)
     fresh = simulate(demo.DEMO_SCENARIO, seed=demo.DEMO_SEED)
     np.testing.assert_array_equal(shipped.range, fresh.range)

@@ -56,23 +56,42 @@ def test_loc_get_tag_capture():
     assert f.type == "loc_get" and f.fields["err"] == 0
     assert f.fields["position"] == (1.438, 1.328, 0.768) and f.fields["qf"] == 22
     got = [(a["id"], a["dist"], a["qf"], a["position"], a["pos_qf"]) for a in f.fields["anchors"]]
-    assert got == [("8287", 0.306, 100, (1.4, 1.69, 1.0), 100), ("1328", 0.259, 100, (1.76, 1.05, 1.0), 100),
-                   ("C584", 0.606, 100, (1.14, 1.02, 1.0), 100)]
+    assert got == [
+        ("8287", 0.306, 100, (1.4, 1.69, 1.0), 100),
+        ("1328", 0.259, 100, (1.76, 1.05, 1.0), 100),
+        ("C584", 0.606, 100, (1.14, 1.02, 1.0), 100),
+    ]
     assert [(r.src, r.dst, r.range_m, r.src_role) for r in f.ranges] == [
-        ("tag", "8287", 0.306, "tag"), ("tag", "1328", 0.259, "tag"), ("tag", "C584", 0.606, "tag")]
+        ("tag", "8287", 0.306, "tag"),
+        ("tag", "1328", 0.259, "tag"),
+        ("tag", "C584", 0.606, "tag"),
+    ]
     assert D.decode_tlv_response(raw, self_id="T7").ranges[0].src == "T7"
     # the encoder reproduces the capture
-    assert E.loc_get_tag((1438, 1328, 768), 22, [(0x8287, 306, 100, (1400, 1690, 1000), 100),
-                                                  (0x1328, 259, 100, (1760, 1050, 1000), 100),
-                                                  (0xC584, 606, 100, (1140, 1020, 1000), 100)]) == raw
+    assert (
+        E.loc_get_tag(
+            (1438, 1328, 768),
+            22,
+            [
+                (0x8287, 306, 100, (1400, 1690, 1000), 100),
+                (0x1328, 259, 100, (1760, 1050, 1000), 100),
+                (0xC584, 606, 100, (1140, 1020, 1000), 100),
+            ],
+        )
+        == raw
+    )
 
 
 def test_anchor_list_capture():
     f = D.decode_tlv_response(spec_hex(ANCHOR_LIST))
     assert f.type == "anchor_list_get"
     got = [(a["id"], a["position"], a["rssi"], a["seat"]) for a in f.fields["anchor_list"]]
-    assert got == [("C584", (1.34, 2.01, 3.06), -78, 0), ("0C0C", (1.5, 2.5, 3.0), -78, 1),
-                   ("1328", (1.56, 1.23, 3.41), -77, 2), ("9A1C", (64.0, 50.0, 18.0), -127, 4)]
+    assert got == [
+        ("C584", (1.34, 2.01, 3.06), -78, 0),
+        ("0C0C", (1.5, 2.5, 3.0), -78, 1),
+        ("1328", (1.56, 1.23, 3.41), -77, 2),
+        ("9A1C", (64.0, 50.0, 18.0), -127, 4),
+    ]
     assert f.ranges == ()
 
 
@@ -93,14 +112,17 @@ def test_error_and_pos_get():
     assert f.type == "pos_get" and f.fields["position"] == (1.438, 1.328, 0.768)
 
 
-@pytest.mark.parametrize("bad", [
-    b"\x41\x01\x00",  # not a status item
-    b"\x40\x01\x09",  # err out of range
-    b"\x40\x01\x00\x41\x0c" + bytes(12),  # position must be 13 bytes
-    b"\x40\x01\x00\x49\x15\x02" + bytes(20),  # 0x49 with cnt 2 needs 41 bytes
-    b"\x40\x01\x00\x48\x0a\x01" + bytes(9),  # 0x48 element neither 13 nor 7 bytes
-    b"\x40\x01\x01\x41",  # error response with trailing bytes
-])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        b"\x41\x01\x00",  # not a status item
+        b"\x40\x01\x09",  # err out of range
+        b"\x40\x01\x00\x41\x0c" + bytes(12),  # position must be 13 bytes
+        b"\x40\x01\x00\x49\x15\x02" + bytes(20),  # 0x49 with cnt 2 needs 41 bytes
+        b"\x40\x01\x00\x48\x0a\x01" + bytes(9),  # 0x48 element neither 13 nor 7 bytes
+        b"\x40\x01\x01\x41",  # error response with trailing bytes
+    ],
+)
 def test_bad_tlv_responses_raise(bad):
     with pytest.raises(D.FrameError):
         D.decode_tlv_response(bad)
@@ -125,8 +147,13 @@ def test_tlv_stream_resync():
 
 
 @settings(max_examples=150, deadline=None)
-@given(st.lists(st.one_of(st.binary(max_size=30), st.integers(0, 2**31).map(
-    lambda s: _random_tlv(random.Random(s)))), max_size=10), st.lists(st.integers(1, 100), max_size=20))
+@given(
+    st.lists(
+        st.one_of(st.binary(max_size=30), st.integers(0, 2**31).map(lambda s: _random_tlv(random.Random(s)))),
+        max_size=10,
+    ),
+    st.lists(st.integers(1, 100), max_size=20),
+)
 def test_tlv_chunking_does_not_change_the_result(segments, cuts):
     data = b"".join(segments)
     whole, ws = D.decode_tlv(data)
@@ -142,11 +169,23 @@ def test_tlv_chunking_does_not_change_the_result(segments, cuts):
 
 def _random_tlv(rng) -> bytes:
     if rng.random() < 0.5:
-        return E.loc_get_tag([rng.randrange(-9999, 9999) for _ in range(3)], rng.randrange(101),
-                             [(rng.randrange(65536), rng.randrange(20000), rng.randrange(101),
-                               [rng.randrange(-9999, 9999) for _ in range(3)], 100) for _ in range(rng.randrange(5))])
-    return E.loc_get_anchor([1, 2, 3], 50, [(rng.randrange(1 << 64), rng.randrange(20000), 90)
-                                            for _ in range(rng.randrange(4))])
+        return E.loc_get_tag(
+            [rng.randrange(-9999, 9999) for _ in range(3)],
+            rng.randrange(101),
+            [
+                (
+                    rng.randrange(65536),
+                    rng.randrange(20000),
+                    rng.randrange(101),
+                    [rng.randrange(-9999, 9999) for _ in range(3)],
+                    100,
+                )
+                for _ in range(rng.randrange(5))
+            ],
+        )
+    return E.loc_get_anchor(
+        [1, 2, 3], 50, [(rng.randrange(1 << 64), rng.randrange(20000), 90) for _ in range(rng.randrange(4))]
+    )
 
 
 @settings(max_examples=100, deadline=None)
@@ -196,9 +235,24 @@ def test_real_shell_lines_and_garbled_line():
 
 def test_shell_stream_prompt_echo_log_unknown_and_bad_lines():
     lec = spec_line("DIST,4,AN0,1151")
-    stream = (b"dwm> lec\r\n" + b"dwm> " + lec + b"\r\n" + b"\r\n" + b"[000541.880 INF] ble\r\n"
-              + spec_line("DIST,4,AN0,0090") + b"\r\n" + b"DIST,4;[AN0,C584,160,0,-1510]=[1176,100];\r\n"
-              + b"\x40\x01\x01\r\n" + b"x" * 3000 + b"\r\n" + b"lec" + lec + b"\r\n" + lec[:30])
+    stream = (
+        b"dwm> lec\r\n"
+        + b"dwm> "
+        + lec
+        + b"\r\n"
+        + b"\r\n"
+        + b"[000541.880 INF] ble\r\n"
+        + spec_line("DIST,4,AN0,0090")
+        + b"\r\n"
+        + b"DIST,4;[AN0,C584,160,0,-1510]=[1176,100];\r\n"
+        + b"\x40\x01\x01\r\n"
+        + b"x" * 3000
+        + b"\r\n"
+        + b"lec"
+        + lec
+        + b"\r\n"
+        + lec[:30]
+    )
     frames, stats = D.decode_shell(stream)
     assert [f.type for f in frames] == ["lec", "log", "unknown", "lec"]
     assert frames[0].fields["anchors"][3]["dist"] == 3.19 and frames[3].raw == b"lec" + lec
@@ -208,11 +262,25 @@ def test_shell_stream_prompt_echo_log_unknown_and_bad_lines():
 
 
 @settings(max_examples=150, deadline=None)
-@given(st.lists(st.one_of(st.binary(max_size=40), st.sampled_from([
-    E.lec_line([("1151", (5, 8, 2.25), 6.44), ("0CA8", (0, 8, 2.25), 6.5)], (1, 2, 3), 50),
-    E.les_line([("1151", (5, 8, 2.25), 6.48)], 2576, (2.5, 2.0, 1.7), 100),
-    b"dwm> ", b"\r\n", b"x" * 1100, b"[000001.000 INF] x\r\n"])), max_size=12),
-    st.lists(st.integers(1, 300), max_size=20))
+@given(
+    st.lists(
+        st.one_of(
+            st.binary(max_size=40),
+            st.sampled_from(
+                [
+                    E.lec_line([("1151", (5, 8, 2.25), 6.44), ("0CA8", (0, 8, 2.25), 6.5)], (1, 2, 3), 50),
+                    E.les_line([("1151", (5, 8, 2.25), 6.48)], 2576, (2.5, 2.0, 1.7), 100),
+                    b"dwm> ",
+                    b"\r\n",
+                    b"x" * 1100,
+                    b"[000001.000 INF] x\r\n",
+                ]
+            ),
+        ),
+        max_size=12,
+    ),
+    st.lists(st.integers(1, 300), max_size=20),
+)
 def test_shell_chunking_does_not_change_the_result(segments, cuts):
     data = b"".join(segments)
     whole, ws = D.decode_shell(data)
@@ -226,15 +294,21 @@ def test_shell_chunking_does_not_change_the_result(segments, cuts):
 
 
 @settings(max_examples=100, deadline=None)
-@given(st.lists(st.tuples(st.integers(0, 65535), st.integers(-99999, 99999), st.integers(0, 99999)), max_size=8),
-       st.one_of(st.none(), st.tuples(st.integers(-9999, 9999), st.integers(-9999, 9999), st.integers(-9999, 9999))),
-       st.integers(0, 100))
+@given(
+    st.lists(st.tuples(st.integers(0, 65535), st.integers(-99999, 99999), st.integers(0, 99999)), max_size=8),
+    st.one_of(st.none(), st.tuples(st.integers(-9999, 9999), st.integers(-9999, 9999), st.integers(-9999, 9999))),
+    st.integers(0, 100),
+)
 def test_lec_round_trip(anchors, pos, qf):
-    line = E.lec_line([(f"{a:04X}", (x / 100, 1.0, 2.0), d / 100) for a, x, d in anchors],
-                      None if pos is None else tuple(v / 100 for v in pos), qf)
+    line = E.lec_line(
+        [(f"{a:04X}", (x / 100, 1.0, 2.0), d / 100) for a, x, d in anchors],
+        None if pos is None else tuple(v / 100 for v in pos),
+        qf,
+    )
     frames, stats = D.decode_shell(line)
     (f,) = frames
     assert [(a["id"], a["position"][0], a["dist"]) for a in f.fields["anchors"]] == [
-        (f"{a:04X}", x / 100, d / 100) for a, x, d in anchors]
+        (f"{a:04X}", x / 100, d / 100) for a, x, d in anchors
+    ]
     if pos is not None:
         assert f.fields["position"] == tuple(v / 100 for v in pos) and f.fields["qf"] == qf

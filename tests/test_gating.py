@@ -71,10 +71,7 @@ def test_zones_of_several_anchors_intersect(rng):
         GateParams(delta_m=4.0),
     )
     r = np.linalg.norm(pos[7] - anchors, axis=1)
-    single = [
-        np.asarray(gating.admissible(db, an, jnp.where(jnp.arange(3) == a, r, jnp.nan), p))
-        for a in range(3)
-    ]
+    single = [np.asarray(gating.admissible(db, an, jnp.where(jnp.arange(3) == a, r, jnp.nan), p)) for a in range(3)]
     both = np.asarray(gating.admissible(db, an, jnp.asarray(r), p))
     assert np.array_equal(both, single[0] & single[1] & single[2])
     assert both.sum() < min(s.sum() for s in single)  # intersecting really narrows this scene
@@ -107,9 +104,7 @@ def test_indexed_search_equals_masked_and_a_loop(rng, metric):
     )
     assert np.array_equal(batched.index, masked.index)
     n = np.asarray(batched.n_admissible)
-    assert (n < 64).any() and (
-        n == len(pos)
-    ).any()  # both the gathered-slice path and the fallback ran
+    assert (n < 64).any() and (n == len(pos)).any()  # both the gathered-slice path and the fallback ran
     assert np.array_equal(batched.n_admissible, masked.n_admissible)
     np.testing.assert_allclose(batched.distance, masked.distance, rtol=1e-10)
     # vmap over queries equals a Python loop of single-query calls (fixed capacity K: exact)
@@ -120,9 +115,7 @@ def test_indexed_search_equals_masked_and_a_loop(rng, metric):
         # brute force: rank the admissible keyframes by distance with NumPy
         mask = _slow_admissible(pos, anchors, np.asarray(an.sigma), ranges[i], 3.0, 2.0, 0.01)
         if metric == "cosine":
-            dist = 1 - (desc / np.linalg.norm(desc, axis=1, keepdims=True)) @ (
-                qdesc[i] / np.linalg.norm(qdesc[i])
-            )
+            dist = 1 - (desc / np.linalg.norm(desc, axis=1, keepdims=True)) @ (qdesc[i] / np.linalg.norm(qdesc[i]))
         else:
             dist = np.linalg.norm(desc - qdesc[i], axis=1)
         want = np.flatnonzero(mask)[np.argsort(dist[mask], kind="stable")][:5]
@@ -139,18 +132,14 @@ def test_gating_keeps_true_place_when_errors_within_zone(rng):
     sig = np.array([0.5, 1.0, 2.0])
     # anchor error of length <= k_sigma * sigma, range error <= delta + range_rel * range
     u = rng.normal(size=(a, 3))
-    est = truth + (u / np.linalg.norm(u, axis=1, keepdims=True)) * 2.0 * sig[:, None] * rng.uniform(
-        0, 1, (a, 1)
-    )
+    est = truth + (u / np.linalg.norm(u, axis=1, keepdims=True)) * 2.0 * sig[:, None] * rng.uniform(0, 1, (a, 1))
     an = Anchors.from_estimate(est, sig[:, None, None] ** 2 * np.eye(3))
     db, ix = KeyframeDB.build(pos, desc), None
     ix = ZoneIndex.build(db, an)
     true_idx = rng.choice(k, 40, replace=False)
     d = np.linalg.norm(pos[true_idx][:, None] - truth[None], axis=-1)
     bound = (1.0 + 0.01 * d) * 0.999
-    ranges = (
-        d + rng.uniform(-1, 1, d.shape) * bound / 1.01
-    )  # keeps |error| < delta + rel * measured range
+    ranges = d + rng.uniform(-1, 1, d.shape) * bound / 1.01  # keeps |error| < delta + rel * measured range
     res = gating.search(db, ix, an, desc[true_idx], ranges, p, top_k=1)
     assert np.array_equal(np.asarray(res.index[:, 0]), true_idx)
     assert np.all(np.asarray(res.n_admissible) < k)  # and the gate did remove keyframes
@@ -232,9 +221,7 @@ def test_cli_simulate_end_to_end_and_reader(tmp_path):
     assert out["n_queries"] == 60 and out["queries_with_truth"] == 60
     assert 0 < out["mean_anchors_heard"] <= 2
     assert out["mean_admissible"] < out["keyframes"]
-    assert (
-        out["success_gated"] > out["success_full"]
-    )  # seed 0: the repetitive yard fools the full search
+    assert out["success_gated"] > out["success_full"]  # seed 0: the repetitive yard fools the full search
     with h5py.File(tmp_path / "out.h5") as f:
         assert f.attrs["jaxcal_format"] == "result"
         assert f["candidates/index"].shape == (60, 3)

@@ -41,11 +41,7 @@ def test_nlml_equals_dense_scipy(nu):
     y = rng.normal(size=n + pad)
     mask = np.arange(n + pad) < n
     h = gp.Hyper(jnp.log(1.3), jnp.log(0.8), jnp.log(0.05))
-    got = float(
-        gp.neg_log_marginal_likelihood(
-            h, jnp.asarray(x), jnp.asarray(y), jnp.asarray(mask), nu, 1e-6
-        )
-    )
+    got = float(gp.neg_log_marginal_likelihood(h, jnp.asarray(x), jnp.asarray(y), jnp.asarray(mask), nu, 1e-6))
     xv, yv = x[:n], y[:n]
     d = np.linalg.norm(xv[:, None] - xv[None], axis=-1)
     k = _matern_ref(d, 1.3, 0.8, nu) + (0.05 + 1e-6 * 0.8) * np.eye(n)
@@ -60,9 +56,7 @@ def test_nlml_gradients(nu):
     y = jnp.asarray(rng.normal(size=12))
     mask = jnp.asarray(np.arange(12) < 10)
     h = gp.Hyper(jnp.log(1.1), jnp.log(0.9), jnp.log(0.1))
-    check_grads(
-        lambda h: gp.neg_log_marginal_likelihood(h, x, y, mask, nu), (h,), order=1, modes=("rev",)
-    )
+    check_grads(lambda h: gp.neg_log_marginal_likelihood(h, x, y, mask, nu), (h,), order=1, modes=("rev",))
 
 
 def test_target_transform_roundtrip():
@@ -87,9 +81,7 @@ def drone(noise=0.0, seed=0):
     def path(t):
         k = (t >= 30).astype(int)
         s = t - 30 * k
-        off = np.stack(
-            [1.5 * np.sin(0.9 * s), 1.5 * np.sin(0.7 * s + 0.5), 1.2 * np.sin(1.1 * s + 1.0)], 1
-        )
+        off = np.stack([1.5 * np.sin(0.9 * s), 1.5 * np.sin(0.7 * s + 0.5), 1.2 * np.sin(1.1 * s + 1.0)], 1)
         return anchors[k] + off + np.array([0.2, -0.1, 0.1]), k
 
     t = np.arange(0, 60.0, 0.05)
@@ -144,9 +136,7 @@ def test_mean_model_nlml_equals_dense_scipy(target):
     r = rng.uniform(1.0, 6.0, n + pad)
     mask = np.arange(n + pad) < n
     th = _theta()
-    got = float(
-        gp.mean_model_nlml(th, jnp.asarray(x), jnp.asarray(r), jnp.asarray(mask), 1.5, 1e-6, target)
-    )
+    got = float(gp.mean_model_nlml(th, jnp.asarray(x), jnp.asarray(r), jnp.asarray(mask), 1.5, 1e-6, target))
     xv, rv = x[:n], r[:n]
     d = np.linalg.norm(xv[:, None] - xv[None], axis=-1)
     k = _matern_ref(d, 1.2, 0.3, 1.5) + (0.05 + 1e-6 * 0.3) * np.eye(n)

@@ -51,11 +51,7 @@ def test_blocks_nlml_equals_dense_block_diagonal_scipy():
     mask[1, 4:] = False
     mask[2] = False
     th = _theta()
-    got = float(
-        gp_anchor.blocks_nlml(
-            th, *(jnp.asarray(v) for v in (x, r, mask)), 1.5, 1e-6, "range", jnp.asarray(s)
-        )
-    )
+    got = float(gp_anchor.blocks_nlml(th, *(jnp.asarray(v) for v in (x, r, mask)), 1.5, 1e-6, "range", jnp.asarray(s)))
     ref = 0.0
     for b in range(n_blk):
         k = mask[b]

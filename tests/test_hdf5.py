@@ -34,17 +34,34 @@ def test_trajectory_round_trip(tmp_path):
     q = np.tile([0.0, 0.0, 0.0, 1.0], (5, 1))
     ds = small_traj(pose_orientation=q, range_los=[1, 0, -1])
     back = hdf5.read(hdf5.write(tmp_path / "t.h5", ds))
-    for f in ("anchor_truth", "lever_arm", "pose_time", "pose_position", "pose_orientation",
-              "range_time", "range_anchor", "range_tag", "range", "range_los"):
+    for f in (
+        "anchor_truth",
+        "lever_arm",
+        "pose_time",
+        "pose_position",
+        "pose_orientation",
+        "range_time",
+        "range_anchor",
+        "range_tag",
+        "range",
+        "range_los",
+    ):
         assert _eq(getattr(ds, f), getattr(back, f)), f
     assert back.range_anchor.dtype == np.int32
 
 
 def test_result_round_trip(tmp_path):
-    res = Result(ids=["a", "b", "c"], position=[[0, 0], [1, 0], [np.nan, np.nan]], method="cf",
-                 dataset="x", frame="anchors:0,1,2", params={"sigma_r": 0.3, "top_k": 5},
-                 covariance=np.tile(np.eye(2), (3, 1, 1)), track_time=[0.0, 0.1],
-                 track_position=np.zeros((2, 3, 2)))
+    res = Result(
+        ids=["a", "b", "c"],
+        position=[[0, 0], [1, 0], [np.nan, np.nan]],
+        method="cf",
+        dataset="x",
+        frame="anchors:0,1,2",
+        params={"sigma_r": 0.3, "top_k": 5},
+        covariance=np.tile(np.eye(2), (3, 1, 1)),
+        track_time=[0.0, 0.1],
+        track_position=np.zeros((2, 3, 2)),
+    )
     back = hdf5.read(hdf5.write(tmp_path / "r.h5", res))
     assert back.params == {"sigma_r": 0.3, "top_k": 5}
     assert _eq(back.position, res.position) and _eq(back.track_position, res.track_position)

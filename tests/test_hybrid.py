@@ -17,8 +17,9 @@ def _scene(seed=3, n=6, k=30, outliers=True):
     if outliers:
         r[rng.random((k, n, n)) < 0.03] += 20.0
     r[:, np.arange(n), np.arange(n)] = np.nan
-    return MeshDataset(name="hyb", node_ids=[f"n{i}" for i in range(n)], time=np.arange(k) * 0.1,
-                       range=np.abs(r), truth=truth)
+    return MeshDataset(
+        name="hyb", node_ids=[f"n{i}" for i in range(n)], time=np.arange(k) * 0.1, range=np.abs(r), truth=truth
+    )
 
 
 def test_split_params():

@@ -116,7 +116,7 @@ def test_families_fix_what_they_should_on_20_seeds(kind):
         if kind == "leaf":
             assert not ident.fixed[n - 1] and "ranges only" in ident.reason[n - 1]
         elif kind == "bridge":
-            assert not ident.fixed[n // 2 + 1:].any() and ident.fixed[: n // 2 + 1].sum() >= n // 2 - 1
+            assert not ident.fixed[n // 2 + 1 :].any() and ident.fixed[: n // 2 + 1].sum() >= n // 2 - 1
         else:
             assert ident.frame_fixed, (kind, seed, ident.reason)
             assert ident.n_fixed >= n - 1, (kind, seed, ident.reason)  # 4 % random gaps may strand one

@@ -21,8 +21,11 @@ from jaxcal.io import hdf5
 from jaxcal.io.importers import IMPORTERS, import_recording
 
 DWM = ("dwm1001-autocal",)
-SCENARIOS = [("campus_sport/rich_samples", "campus_sport"), ("srvlab_ground", "srvlab_ground"),
-             ("3D_distribution", "3D_distribution")]
+SCENARIOS = [
+    ("campus_sport/rich_samples", "campus_sport"),
+    ("srvlab_ground", "srvlab_ground"),
+    ("3D_distribution", "3D_distribution"),
+]
 
 
 def _roundtrip(ds, tmp_path):
@@ -30,8 +33,21 @@ def _roundtrip(ds, tmp_path):
     hdf5.write(out, ds)
     back = hdf5.read(out)
     assert type(back) is type(ds) and back.name == ds.name
-    for f in ("range", "time", "truth", "range_time", "pose_time", "pose_position", "pose_orientation",
-              "range_anchor", "range_tag", "anchor_truth", "lever_arm", "range_los", "fp_rssi"):
+    for f in (
+        "range",
+        "time",
+        "truth",
+        "range_time",
+        "pose_time",
+        "pose_position",
+        "pose_orientation",
+        "range_anchor",
+        "range_tag",
+        "anchor_truth",
+        "lever_arm",
+        "range_los",
+        "fp_rssi",
+    ):
         a, b = getattr(ds, f, None), getattr(back, f, None)
         if a is not None:
             np.testing.assert_array_equal(a, b)
@@ -62,6 +78,7 @@ def _traj_residuals(ds: TrajectoryDataset, offset: float = 0.0, every: int = 1):
 
 # ---------------------------------------------------------------- generic csv (synthetic)
 
+
 def test_csv_synthetic(tmp_path):
     p = tmp_path / "ranges.csv"
     p.write_text(
@@ -70,12 +87,12 @@ def test_csv_synthetic(tmp_path):
         "0.0,n0,n2,1.6,1\n"
         "0.0,n0,n1,2.0,0\n"
         "0.5,n1,n0,2.1,1\n"
-        "0.5,n1,n2,abc,1\n"       # non-numeric: skipped
-        "0.5,n1,n1,1.0,1\n"       # self range: skipped
-        "0.5,n2,n0,-1.0,1\n"      # negative: skipped
-        "1.0,n0,n1,2.2,1\n"       # link n0->n1 now mixed -> -1
-        "1.0,n0,n1,2.3,1\n"       # duplicate: last kept
-        "1.0,n2,n1\n"             # wrong field count: skipped
+        "0.5,n1,n2,abc,1\n"  # non-numeric: skipped
+        "0.5,n1,n1,1.0,1\n"  # self range: skipped
+        "0.5,n2,n0,-1.0,1\n"  # negative: skipped
+        "1.0,n0,n1,2.2,1\n"  # link n0->n1 now mixed -> -1
+        "1.0,n0,n1,2.3,1\n"  # duplicate: last kept
+        "1.0,n2,n1\n"  # wrong field count: skipped
     )
     ds = import_recording("csv", p)
     assert isinstance(ds, MeshDataset)
@@ -130,6 +147,7 @@ def test_unknown_importer_and_wrong_arity(tmp_path):
 
 
 # ---------------------------------------------------------------- dwm1001-autocal
+
 
 def _dwm_expected(folder, yaml_path):
     import yaml
@@ -206,6 +224,7 @@ def test_dwm1001_cleaning_on_synthetic_files(tmp_path):
 
 # ---------------------------------------------------------------- hymn
 
+
 def _pylist(s):
     return [v.strip().strip("'") for v in s.strip()[1:-1].split(",")]
 
@@ -226,11 +245,13 @@ def test_hymn_real(tmp_path):
     # first row: time, first range and tag position as in uwb.csv
     r0 = rows[0]
     assert ds.range_time[0] == int(r0["ts"]) / 1000
-    first = next((a, float(v)) for a, v in zip(_pylist(r0["anchor_ids"]), _pylist(r0["ranges"]), strict=False)
-                 if v != "nan")
+    first = next(
+        (a, float(v)) for a, v in zip(_pylist(r0["anchor_ids"]), _pylist(r0["ranges"]), strict=False) if v != "nan"
+    )
     assert ds.anchor_ids[ds.range_anchor[0]] == first[0] and ds.range[0] == np.float32(first[1])
-    np.testing.assert_allclose(ds.pose_position[0], [float(r0[c]) for c in ("X_LOCAL_UWB", "Y_LOCAL_UWB",
-                                                                             "Z_LOCAL_UWB")])
+    np.testing.assert_allclose(
+        ds.pose_position[0], [float(r0[c]) for c in ("X_LOCAL_UWB", "Y_LOCAL_UWB", "Z_LOCAL_UWB")]
+    )
     err, _ = _traj_residuals(ds)
     assert err.size == ds.n_ranges  # every range lies inside a dwell
     assert abs(np.median(err)) < 0.5
@@ -239,6 +260,7 @@ def test_hymn_real(tmp_path):
 
 
 # ---------------------------------------------------------------- cuhksz
+
 
 def _wallclock(s):
     d, t = s.split(" ")
@@ -315,6 +337,7 @@ def _fields(ds):
 
 # ---------------------------------------------------------------- hanyang
 
+
 @pytest.mark.parametrize("run, los", [("LOS", 1), ("NLOS", 0)])
 def test_hanyang_real(run, los, tmp_path):
     d = shared_path("datasets", "hanyang-outdoor", run, "Trajectory_A", "Case_1")
@@ -345,6 +368,7 @@ def test_hanyang_real(run, los, tmp_path):
 
 
 # ---------------------------------------------------------------- command line
+
 
 def test_cli_import_csv_and_real(tmp_path):
     p = tmp_path / "r.csv"

@@ -120,9 +120,7 @@ def _result(pos, track=None, frame="anchors:0,1,2", ids=None):
 
 
 def _scene():
-    truth = np.array(
-        [[2.0, 1.0, 1.6], [12.0, 3.0, 1.6], [5.0, 9.0, 1.6], [14.0, 11.0, 1.6], [8.0, 4.0, 1.6]]
-    )
+    truth = np.array([[2.0, 1.0, 1.6], [12.0, 3.0, 1.6], [5.0, 9.0, 1.6], [14.0, 11.0, 1.6], [8.0, 4.0, 1.6]])
     return truth
 
 
@@ -213,9 +211,7 @@ def test_evaluate_trajectory_per_anchor():
     res = Result(ids=["C", "A", "B"], position=est, method="gp", dataset="tr", frame="world")
     ev = metrics.evaluate(res, ds)
     errs = {a["id"]: a["error_m"] for a in ev["anchors"]}
-    assert (
-        errs["C"] == pytest.approx(0.5) and errs["A"] == pytest.approx(5.0) and np.isnan(errs["B"])
-    )
+    assert errs["C"] == pytest.approx(0.5) and errs["A"] == pytest.approx(5.0) and np.isnan(errs["B"])
     assert ev["mean_error_m"] == pytest.approx(2.75)
 
 
@@ -251,12 +247,17 @@ def test_covariance_consistency_known_answers():
     cov[2] = np.diag([0.01, 0.04])
     cov[3] = [[0.25, 0.1], [0.1, 0.25]]
     cov[4] = np.diag([0.5, 0.25])
-    res = Result(ids=[f"n{i}" for i in range(5)], position=tf + err, method="x", dataset="m",
-                 frame="anchors:0,1,2", covariance=cov)
+    res = Result(
+        ids=[f"n{i}" for i in range(5)],
+        position=tf + err,
+        method="x",
+        dataset="m",
+        frame="anchors:0,1,2",
+        covariance=cov,
+    )
     ds = _mesh(np.full((2, 5, 5), np.nan), truth)
     cc = metrics.covariance_consistency(res, ds)
-    nees = (0.09 / 0.09 + 0.01 / 0.01 + 0.04 / 0.04
-            + err[3] @ np.linalg.inv(cov[3]) @ err[3] + 0.25 / 0.25)
+    nees = 0.09 / 0.09 + 0.01 / 0.01 + 0.04 / 0.04 + err[3] @ np.linalg.inv(cov[3]) @ err[3] + 0.25 / 0.25
     assert cc["nodes"] == 4
     assert cc["nees_per_dof"] == pytest.approx(nees / 7)
     assert cc["error_rmse_m"] == pytest.approx(np.sqrt(np.mean([0.09, 0.05, 0.25, 0.25])))
@@ -270,13 +271,22 @@ def test_covariance_consistency_trajectory_horizontal_vertical_and_nan_axis():
     from jaxcal.data import TrajectoryDataset
 
     truth = np.array([[0.0, 0, 3], [10, 0, 4], [0, 10, 5]])
-    ds = TrajectoryDataset(name="t", anchor_ids=["a", "b", "c"], tag_ids=["t"], lever_arm=[[0, 0, 0]],
-                           pose_time=[0.0, 1.0], pose_position=np.zeros((2, 3)), range_time=[0.5],
-                           range_anchor=[0], range_tag=[0], range=[1.0], anchor_truth=truth)
+    ds = TrajectoryDataset(
+        name="t",
+        anchor_ids=["a", "b", "c"],
+        tag_ids=["t"],
+        lever_arm=[[0, 0, 0]],
+        pose_time=[0.0, 1.0],
+        pose_position=np.zeros((2, 3)),
+        range_time=[0.5],
+        range_anchor=[0],
+        range_tag=[0],
+        range=[1.0],
+        anchor_truth=truth,
+    )
     err = np.array([[0.1, 0.0, 0.3], [0.0, 0.2, -0.1], [0.0, 0.0, np.nan]])
     cov = np.repeat(np.diag([0.01, 0.01, 0.01])[None], 3, axis=0)
-    res = Result(ids=["a", "b", "c"], position=truth + err, method="nls", dataset="t", frame="world",
-                 covariance=cov)
+    res = Result(ids=["a", "b", "c"], position=truth + err, method="nls", dataset="t", frame="world", covariance=cov)
     cc = metrics.covariance_consistency(res, ds)
     assert cc["nodes"] == 3
     assert cc["h_nees_per_dof"] == pytest.approx((1 + 4 + 0) / 6)
@@ -293,7 +303,8 @@ def test_covariance_consistency_3d_takes_the_nearer_mirror_image():
     tf = to_frame(truth, 0, 1, 2)
     est = tf * np.array([1.0, 1.0, -1.0]) + rng.normal(0, 0.05, tf.shape)  # the mirror-image solution
     cov = np.repeat(np.eye(3)[None] * 0.05**2, 5, axis=0)
-    res = Result(ids=[f"n{i}" for i in range(5)], position=est, method="x", dataset="m",
-                 frame="anchors:0,1,2", covariance=cov)
+    res = Result(
+        ids=[f"n{i}" for i in range(5)], position=est, method="x", dataset="m", frame="anchors:0,1,2", covariance=cov
+    )
     cc = metrics.covariance_consistency(res, _mesh(np.full((2, 5, 5), np.nan), truth))
     assert cc["error_rmse_m"] < 0.2 and cc["nees_per_dof"] < 5

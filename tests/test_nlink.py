@@ -43,8 +43,12 @@ def test_nodeframe3_vector():
     assert (x["role"], x["id"], x["local_time"], x["system_time"]) == (2, 1, 463352, 7262319)
     assert x["voltage"] == pytest.approx(4.954)
     nodes = [(n["role"], n["id"], n["dis"], n["fp_rssi"], n["rx_rssi"]) for n in x["nodes"]]
-    assert nodes == [(1, 0, 2.850, -90.5, -79.5), (1, 1, 6.051, -91, -80), (1, 2, 7.304, -85, -79.5),
-                     (1, 3, 5.350, -92, -80)]
+    assert nodes == [
+        (1, 0, 2.850, -90.5, -79.5),
+        (1, 1, 6.051, -91, -80),
+        (1, 2, 7.304, -85, -79.5),
+        (1, 3, 5.350, -92, -80),
+    ]
     assert [(r.src, r.dst, r.src_role, r.dst_role) for r in f.ranges][0] == ("T1", "A0", "tag", "anchor")
     assert [r.range_m for r in f.ranges] == [2.850, 6.051, 7.304, 5.350]
 
@@ -64,8 +68,12 @@ def test_aoa_nodeframe0_vector():
     assert (x["role"], x["id"], x["local_time"], x["system_time"]) == (2, 0, 160702, 0)
     assert x["voltage"] == pytest.approx(4.847)
     got = [(n["id"], n["dis"], n["angle"], n["fp_rssi"], n["rx_rssi"]) for n in x["nodes"]]
-    assert got == [(0, 0.767, 28.50, -81.5, -79.5), (1, 0.770, 1.73, -82, -79.5), (2, 1.004, 9.71, -82.5, -80),
-                   (3, 1.416, -49.67, -81.5, -80)]
+    assert got == [
+        (0, 0.767, 28.50, -81.5, -79.5),
+        (1, 0.770, 1.73, -82, -79.5),
+        (2, 1.004, 9.71, -82.5, -80),
+        (3, 1.416, -49.67, -81.5, -80),
+    ]
 
 
 def test_nodeframe2_vector():
@@ -82,8 +90,12 @@ def test_nodeframe2_vector():
     assert approx_seq(x["quaternion"], (0.691282, 0.694677, 0.154792, -0.110552), 1e-6)
     assert approx_seq(x["eop"], (0.06, 0.09, 2.55))
     got = [(n["id"], n["dis"], n["fp_rssi"], n["rx_rssi"], n["system_time"]) for n in x["nodes"]]
-    assert got == [(0, 3.179, -88.5, -79.5, 1926822), (1, 5.548, -90, -80.5, 1926822),
-                   (2, 6.728, -101, -79.5, 1926822), (3, 4.651, -99, -80, 1926822)]
+    assert got == [
+        (0, 3.179, -88.5, -79.5, 1926822),
+        (1, 5.548, -90, -80.5, 1926822),
+        (2, 6.728, -101, -79.5, 1926822),
+        (3, 4.651, -99, -80, 1926822),
+    ]
 
 
 def test_nodeframe4_stream_file():
@@ -100,7 +112,9 @@ def test_nodeframe4_stream_file():
     ]
     assert last["local_time"] == 106020 and last["voltage"] == pytest.approx(4.44)
     assert [(t["id"], t["voltage"], list(t["anchors"].values())) for t in last["tags"]] == [
-        (2, 4.45, [2.422, 1.729, 2.107, 1.762]), (5, 3.65, [2.701, 1.429, 2.378, 1.33])]
+        (2, 4.45, [2.422, 1.729, 2.107, 1.762]),
+        (5, 3.65, [2.701, 1.429, 2.378, 1.33]),
+    ]
     assert (frames[0].ranges[0].src, frames[0].ranges[0].dst) == ("T2", "A0")
     # the same frames however the stream is split
     for cut in range(1, 256):
@@ -162,10 +176,20 @@ def test_encoders_reproduce_vectors():
     nf3 = spec_vector("**NodeFrame3** (50 B")
     nodes = [(1, 0, 2850, 181, 159), (1, 1, 6051, 182, 160), (1, 2, 7304, 170, 159), (1, 3, 5350, 184, 160)]
     assert E.nodeframe3(2, 1, 463352, 7262319, 4954, nodes, reserved=bytes([0, 0, 1, 2])) == nf3
-    assert (E.nodeframe4(1, 3, 105870, 105870, 4456,
-                         [(2, 88, [(0, 2445), (1, 1748), (2, 2038), (3, 1709)]),
-                          (5, 70, [(0, 2744), (1, 1427), (2, 2408), (3, 1347)])])[20:-1]
-            == hex_file("nodeframe4_stream.hex")[20:63])
+    assert (
+        E.nodeframe4(
+            1,
+            3,
+            105870,
+            105870,
+            4456,
+            [
+                (2, 88, [(0, 2445), (1, 1748), (2, 2038), (3, 1709)]),
+                (5, 70, [(0, 2744), (1, 1427), (2, 2408), (3, 1347)]),
+            ],
+        )[20:-1]
+        == hex_file("nodeframe4_stream.hex")[20:63]
+    )
 
 
 # ---------------------------------------------------------------------------------------- corruption
@@ -193,8 +217,7 @@ def test_hostile_stream_resync():
     false_header = b"\x55\x05\x32\x00\x02"  # claims a 50-byte NodeFrame3, then real data follows
     bad_sum = nf3[:-1] + bytes([nf3[-1] ^ 0xFF])
     unknown = E.unknown_frame(0x0A, b"hello")
-    stream = (b"\x00\xff\x55garbage" + false_header + nf3 + bad_sum + nf2 + unknown + b"\x55\x55" + tag
-              + nf3[:30])
+    stream = b"\x00\xff\x55garbage" + false_header + nf3 + bad_sum + nf2 + unknown + b"\x55\x55" + tag + nf3[:30]
     expect = [nf3, nf2, unknown, tag]
     rng = random.Random(7)
     for _ in range(50):
@@ -268,8 +291,12 @@ def test_chunking_does_not_change_the_result(segments, cuts):
 
 
 @settings(max_examples=150, deadline=None)
-@given(st.lists(st.tuples(st.integers(0, 2**31), st.binary(max_size=40).map(lambda b: b.replace(b"\x55", b""))),
-                max_size=10), st.integers(0, 2**31))
+@given(
+    st.lists(
+        st.tuples(st.integers(0, 2**31), st.binary(max_size=40).map(lambda b: b.replace(b"\x55", b""))), max_size=10
+    ),
+    st.integers(0, 2**31),
+)
 def test_valid_frames_between_garbage_are_all_recovered(items, seed):
     frames = [E.random_nlink_frame(random.Random(s)) for s, _ in items]
     data = b"".join(g + f for (_, g), f in zip(items, frames, strict=False))
@@ -288,14 +315,21 @@ _dis = st.integers(-(1 << 23), (1 << 23) - 1)
 
 
 @settings(max_examples=100, deadline=None)
-@given(_u8, _u8, st.integers(0, 2**32 - 1), st.integers(0, 2**32 - 1), st.integers(0, 65535),
-       st.lists(st.tuples(_u8, _u8, _dis, _u8, _u8), max_size=20))
+@given(
+    _u8,
+    _u8,
+    st.integers(0, 2**32 - 1),
+    st.integers(0, 2**32 - 1),
+    st.integers(0, 65535),
+    st.lists(st.tuples(_u8, _u8, _dis, _u8, _u8), max_size=20),
+)
 def test_nodeframe3_round_trip(role, ident, lt, syt, mv, nodes):
     f = decode_frame(E.nodeframe3(role, ident, lt, syt, mv, nodes))
     assert (f.fields["role"], f.fields["id"], f.fields["local_time"], f.fields["system_time"]) == (role, ident, lt, syt)
     assert f.fields["voltage"] == mv / 1000
     assert [(n["role"], n["id"], n["dis"], n["fp_rssi"], n["rx_rssi"]) for n in f.fields["nodes"]] == [
-        (r, i, d / 1000, fp / -2, rx / -2) for r, i, d, fp, rx in nodes]
+        (r, i, d / 1000, fp / -2, rx / -2) for r, i, d, fp, rx in nodes
+    ]
     assert f.device_time_ms == lt
 
 
@@ -304,19 +338,24 @@ def test_nodeframe3_round_trip(role, ident, lt, syt, mv, nodes):
 def test_nodeframe4_round_trip(tags):
     f = decode_frame(E.nodeframe4(1, 2, 3, 4, 4000, tags))
     assert [(t["id"], t["voltage"], t["anchors"]) for t in f.fields["tags"]] == [
-        (tid, tv / 20, {a: d / 1000 for a, d in anchors}) for tid, tv, anchors in tags]
+        (tid, tv / 20, {a: d / 1000 for a, d in anchors}) for tid, tv, anchors in tags
+    ]
     assert len(f.ranges) == sum(len(anchors) for _, _, anchors in tags)
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.tuples(st.integers(0, 254), st.integers(0, 6),
-                          st.lists(st.integers(0, 65535), min_size=8, max_size=8)),
-                max_size=30))
+@given(
+    st.lists(
+        st.tuples(st.integers(0, 254), st.integers(0, 6), st.lists(st.integers(0, 65535), min_size=8, max_size=8)),
+        max_size=30,
+    )
+)
 def test_anchorframe0_round_trip(slots):
     raw = E.anchorframe0([(i, r, (1, -2, 3), dis) for i, r, dis in slots], 7, 8, 4321)
     f = decode_frame(raw)
     assert [(n["id"], n["role"], n["dis"]) for n in f.fields["nodes"]] == [
-        (i, r, tuple(d / 100 for d in dis)) for i, r, dis in slots]
+        (i, r, tuple(d / 100 for d in dis)) for i, r, dis in slots
+    ]
     assert len(f.ranges) == sum(sum(1 for d in dis if d) for _, _, dis in slots)
 
 

@@ -17,9 +17,7 @@ def lissajous(n_anchor=3, noise=0.0, planar=False, outliers=0, shift_s=0.0, seed
 
     def body(t):
         zamp = 0.0 if planar else 1.2
-        p = np.stack(
-            [5 * np.sin(0.31 * t), 5 * np.sin(0.23 * t + 1), zamp * np.sin(0.17 * t) + 1.0], 1
-        )
+        p = np.stack([5 * np.sin(0.31 * t), 5 * np.sin(0.23 * t + 1), zamp * np.sin(0.17 * t) + 1.0], 1)
         return p, 0.1 * t
 
     t = np.arange(0, 60.0, 0.05)
@@ -128,9 +126,7 @@ def test_cli_calibrate_gp_then_evaluate(tmp_path):
     ev = run_cli("evaluate", out, "--truth", f, "--json")
     assert ev.returncode == 0, ev.stderr
     assert '"mean_error_m"' in ev.stdout
-    bad = run_cli(
-        "calibrate", f, "--method", "nls", "-o", tmp_path / "x.h5", "--set", "loss=tukey", env=env
-    )
+    bad = run_cli("calibrate", f, "--method", "nls", "-o", tmp_path / "x.h5", "--set", "loss=tukey", env=env)
     assert_one_line_error(bad, "loss")
 
 

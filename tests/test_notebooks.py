@@ -60,9 +60,7 @@ def test_mesh_torgau_notebook(tmp_path, monkeypatch):
 def test_gp_trajectory_notebook(tmp_path, monkeypatch):
     nb = _execute("gp_trajectory.ipynb", tmp_path, monkeypatch)
     text = _text(nb)
-    if (
-        "nothing to calibrate" in text
-    ):  # neither the shared recording nor the campus simulator exists
+    if "nothing to calibrate" in text:  # neither the shared recording nor the campus simulator exists
         assert not (tmp_path / "gp_trajectory").exists()
         return
     for method in ("gp", "nls", "ls"):

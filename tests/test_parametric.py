@@ -51,13 +51,7 @@ def test_noise_free_placement_and_cli(tmp_path):
     assert res.method == "parametric"
     src, out = tmp_path / "m.h5", tmp_path / "r.h5"
     hdf5.write(src, make_mesh(n=4, k=4, noise=0.1, seed=11))
-    proc = run_cli(
-        "calibrate", src, "--method", "parametric", "-o", out, "--set", "cell_m=1.0", "--json"
-    )
+    proc = run_cli("calibrate", src, "--method", "parametric", "-o", out, "--set", "cell_m=1.0", "--json")
     assert proc.returncode == 0, proc.stderr
     r = hdf5.read(out)
-    assert (
-        r.method == "parametric"
-        and r.covariance.shape == (4, 2, 2)
-        and np.isfinite(r.position).all()
-    )
+    assert r.method == "parametric" and r.covariance.shape == (4, 2, 2) and np.isfinite(r.position).all()

@@ -18,9 +18,7 @@ from jaxcal.mesh.pgp import PGPParams, prepare, run_pgp
 from jaxcal.mesh.pgp_reference import run_reference_for
 
 
-def make_mesh(
-    n=6, k=6, noise=0.0, missing=0.0, seed=0, span=5.0, never=(), configs=None
-) -> MeshDataset:
+def make_mesh(n=6, k=6, noise=0.0, missing=0.0, seed=0, span=5.0, never=(), configs=None) -> MeshDataset:
     """Random 2-D nodes, ranges = true distance + Gaussian noise, some missing."""
     rng = np.random.default_rng(seed)
     truth, d = random_layout(rng, n, span)
@@ -171,9 +169,7 @@ def test_no_recompilation_across_sigma_r_and_tau():
     f = eqx.filter_jit(eqx.debug.assert_max_traces(pgp._filter, max_traces=1))
     outs = []
     for sigma_r, tau in [(0.5, 0.8), (0.3, 0.5), (0.8, 0.95)]:
-        cfg, prm, inp, lp0, _ = prepare(
-            ds, PGPParams(**{**SMALL, "sigma_r": sigma_r, "tau": tau}), None
-        )
+        cfg, prm, inp, lp0, _ = prepare(ds, PGPParams(**{**SMALL, "sigma_r": sigma_r, "tau": tau}), None)
         st, out = f(cfg, prm, inp, lp0)
         outs.append(np.asarray(out.raw))
     assert not np.allclose(outs[0], outs[1], equal_nan=True)  # the numbers did reach the trace
@@ -209,8 +205,12 @@ def test_snapshots_and_uncertainty_out():
     for i in range(1, ds.n_nodes):
         p = info.posterior[i] / info.posterior[i].sum()
         mx, my = np.sum(p * gx), np.sum(p * gy)
-        want = np.array([[np.sum(p * (gx - mx) ** 2), np.sum(p * (gx - mx) * (gy - my))],
-                         [np.sum(p * (gx - mx) * (gy - my)), np.sum(p * (gy - my) ** 2)]])
+        want = np.array(
+            [
+                [np.sum(p * (gx - mx) ** 2), np.sum(p * (gx - mx) * (gy - my))],
+                [np.sum(p * (gx - mx) * (gy - my)), np.sum(p * (gy - my) ** 2)],
+            ]
+        )
         want += np.diag([q, q if i != 1 else 0.0])
         np.testing.assert_allclose(res.covariance[i], want, atol=1e-9)
         assert res.covariance[i][0, 0] >= q - 1e-12

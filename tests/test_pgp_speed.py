@@ -157,11 +157,9 @@ def test_advance_chunked_continues_exactly(split):
     st_w, out_w = pgp.run_chunked(cfg, prm, inp, lp0, chunk=8, full_chunk=2)
     st_a, out_a = pgp.advance_chunked(cfg, prm, inp, pgp.init_state(cfg, lp0), 0, split, 8, 2)
     st_b, out_b = pgp.advance_chunked(cfg, prm, inp, st_a, split, None, 8, 2)
-    for a, b, w in zip(jax.tree.leaves(out_a), jax.tree.leaves(out_b), jax.tree.leaves(out_w),
-                       strict=True):
+    for a, b, w in zip(jax.tree.leaves(out_a), jax.tree.leaves(out_b), jax.tree.leaves(out_w), strict=True):
         np.testing.assert_array_equal(np.concatenate([np.asarray(a), np.asarray(b)]), np.asarray(w))
-    np.testing.assert_array_equal(np.asarray(pgp.full_state(cfg, st_b).logpost),
-                                  np.asarray(st_w.logpost))
+    np.testing.assert_array_equal(np.asarray(pgp.full_state(cfg, st_b).logpost), np.asarray(st_w.logpost))
 
 
 # small windows of 3 m (W = 12) inside the 4 m ones (W = 16): with sigma_v = 0.12 m most windowed
@@ -279,8 +277,17 @@ def test_calibrate_cli_shows_an_epoch_bar(tmp_path):
     src = hdf5.write(tmp_path / "m.h5", small_mesh())
     out = tmp_path / "r.h5"
     proc = run_cli(
-        "calibrate", src, "--method", "pgp", "-o", out, "--set", "cell_m=1.0",
-        "--set", "likelihood=dense", env={"JAXCAL_PROGRESS": "1"},
+        "calibrate",
+        src,
+        "--method",
+        "pgp",
+        "-o",
+        out,
+        "--set",
+        "cell_m=1.0",
+        "--set",
+        "likelihood=dense",
+        env={"JAXCAL_PROGRESS": "1"},
     )
     assert proc.returncode == 0, proc.stderr
     assert "/4 [" in proc.stderr and "epoch" in proc.stderr, proc.stderr

@@ -59,8 +59,10 @@ def test_sigkill_at_20_random_moments_loses_at_most_the_frame_being_decoded(tmp_
         # read in flight (at most one item at the nominal rate)
         assert r["read_bytes"] - r["max_item"] <= r["raw_bytes"] <= r["read_bytes"], r
         assert r["stderr"] == "", r  # --quiet: nothing before the kill
-        lines.append(f"{r['protocol']:>14} seed {r['seed']:2d}: sent {r['sent']:3d}, read {r['read_complete']:3d}, "
-                     f"recovered {r['recovered']:3d}{' (snapshot existed)' if r['snapshot_at_kill'] else ''}")
+        lines.append(
+            f"{r['protocol']:>14} seed {r['seed']:2d}: sent {r['sent']:3d}, read {r['read_complete']:3d}, "
+            f"recovered {r['recovered']:3d}{' (snapshot existed)' if r['snapshot_at_kill'] else ''}"
+        )
     print("\n" + "\n".join(lines))
     by = {}
     for r in runs:
@@ -91,8 +93,11 @@ def test_decoders_discard_a_cut_frame():
     from jaxcal.io.serial import make_decoder
 
     line = lec_lines(1)[0]
-    for protocol, item in (("nlink", nlink_frames(1)[0]), ("dwm1001-tlv", tlv_responses(1)[0]),
-                           ("dwm1001-shell", line)):
+    for protocol, item in (
+        ("nlink", nlink_frames(1)[0]),
+        ("dwm1001-tlv", tlv_responses(1)[0]),
+        ("dwm1001-shell", line),
+    ):
         dec = make_decoder(protocol)
         cut = len(item) - 3 if protocol == "dwm1001-shell" else len(item) // 2
         assert dec.feed(item[:cut]) == [] and dec.discard() == cut
@@ -175,8 +180,14 @@ def test_link_faults_nlink_unplug_baud_silence_burst_then_ctrl_c(tmp_path):
     assert "Traceback" not in stderr
     assert stderr.splitlines()[-1].startswith("jaxcal: interrupted (Ctrl-C): recording complete"), stderr
     # one line per fault and one when it ends
-    for fragment in ("no valid frame: wrong --baud", "valid frames again", "no data for", "data again after",
-                     "device lost", "device back"):
+    for fragment in (
+        "no valid frame: wrong --baud",
+        "valid frames again",
+        "no data for",
+        "data again after",
+        "device lost",
+        "device back",
+    ):
         assert _lines_with(stderr, fragment) == 1, (fragment, stderr)
     assert float(re.search(r"data again after (\d+\.\d) s of silence", stderr).group(1)) >= 2.0
     summary = json.loads(stdout)
@@ -219,8 +230,13 @@ def test_tlv_module_stops_answering_then_never_comes_back(tmp_path):
     assert proc.returncode == 3, stderr
     lines = stderr.splitlines()
     assert lines[-1].startswith("jaxcal: the device was lost and did not come back: recording complete"), stderr
-    for fragment in ("no data for", "does not answer", "data again after", "device lost",
-                     "did not come back within 1 s"):
+    for fragment in (
+        "no data for",
+        "does not answer",
+        "data again after",
+        "device lost",
+        "did not come back within 1 s",
+    ):
         assert _lines_with(stderr, fragment) == 1, (fragment, stderr)
     assert len(lines) == 5 and "Traceback" not in stderr  # four fault lines and the last one
     assert _h5_frames(out) == raws("dwm1001-tlv", answers)
@@ -250,8 +266,21 @@ def test_shell_replug_reinit_then_sigterm_and_refusals(tmp_path):
         assert dev.begin()  # the first `lec`
         # meanwhile a second recorder on the same port (it would take half of the bytes): the port is locked
         second: list = []
-        t = threading.Thread(target=lambda: second.append(run_cli(
-            "record", "--port", port, "--protocol", "dwm1001-shell", "-o", tmp_path / "second.h5", "--duration", "1")))
+        t = threading.Thread(
+            target=lambda: second.append(
+                run_cli(
+                    "record",
+                    "--port",
+                    port,
+                    "--protocol",
+                    "dwm1001-shell",
+                    "-o",
+                    tmp_path / "second.h5",
+                    "--duration",
+                    "1",
+                )
+            )
+        )
         t.start()
         for line in lines[:20]:
             dev.send(line)
@@ -280,13 +309,17 @@ def test_shell_replug_reinit_then_sigterm_and_refusals(tmp_path):
     stderr = "".join(err)
     assert proc.returncode == 143, stderr
     assert len(err) == 3 and ": device lost (" in err[0] and ": device back after" in err[1], stderr
-    assert err[-1] == (f"jaxcal: terminated (SIGTERM): recording complete, 40 frames, 80 ranges, 0 checksum "
-                       f"failures, 0 bytes skipped -> {out}\n")
+    assert err[-1] == (
+        f"jaxcal: terminated (SIGTERM): recording complete, 40 frames, 80 ranges, 0 checksum "
+        f"failures, 0 bytes skipped -> {out}\n"
+    )
     assert _h5_frames(out) == raws("dwm1001-shell", lines)
     before = out.read_bytes()
     assert_one_line_error(run_cli("record", "--port", port, "--protocol", "nlink", "-o", out), "not overwritten")
-    assert_one_line_error(run_cli("record", "--port", port, "--protocol", "nlink", "-o", tmp_path / "new.h5",
-                                  "--raw-out", out), "not overwritten")
+    assert_one_line_error(
+        run_cli("record", "--port", port, "--protocol", "nlink", "-o", tmp_path / "new.h5", "--raw-out", out),
+        "not overwritten",
+    )
     assert_one_line_error(run_cli("record", "--replay", out, "-o", out), "is an input of this run")
     assert out.read_bytes() == before and not (tmp_path / "new.h5.journal").exists()
     assert_one_line_error(second[0], "cannot open serial port")

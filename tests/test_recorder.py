@@ -125,17 +125,36 @@ def test_mesh_epochs_match_a_slow_reference():
 def test_trajectory_mapping_and_auto_format(tmp_path):
     rec = Recording("nlink", name="walk")
     assert rec.build_dataset() is None
-    rec.add([_frame([Range("T1", "A0", 2.0, -90.0, -80.0, "tag", "anchor"),
-                     Range("T1", "A2", 3.0, -91.0, -81.0, "tag", "anchor")])], 0.5)
-    rec.add([_frame([Range("T2", "A2", 4.0, src_role="tag", dst_role="anchor"),
-                     Range("T1", "A0", -0.05, src_role="tag", dst_role="anchor")])], 0.2)
+    rec.add(
+        [
+            _frame(
+                [
+                    Range("T1", "A0", 2.0, -90.0, -80.0, "tag", "anchor"),
+                    Range("T1", "A2", 3.0, -91.0, -81.0, "tag", "anchor"),
+                ]
+            )
+        ],
+        0.5,
+    )
+    rec.add(
+        [
+            _frame(
+                [
+                    Range("T2", "A2", 4.0, src_role="tag", dst_role="anchor"),
+                    Range("T1", "A0", -0.05, src_role="tag", dst_role="anchor"),
+                ]
+            )
+        ],
+        0.2,
+    )
     ds = rec.build_dataset()
     assert isinstance(ds, TrajectoryDataset)
     assert ds.anchor_ids == ("A0", "A2") and ds.tag_ids == ("T1", "T2")
     assert list(ds.range_time) == [0.2, 0.5, 0.5]  # sorted by time
-    assert [(ds.anchor_ids[a], ds.tag_ids[t], float(r))
-            for a, t, r in zip(ds.range_anchor, ds.range_tag, ds.range, strict=False)] == [
-        ("A2", "T2", 4.0), ("A0", "T1", 2.0), ("A2", "T1", 3.0)]
+    assert [
+        (ds.anchor_ids[a], ds.tag_ids[t], float(r))
+        for a, t, r in zip(ds.range_anchor, ds.range_tag, ds.range, strict=False)
+    ] == [("A2", "T2", 4.0), ("A0", "T1", 2.0), ("A2", "T1", 3.0)]
     assert rec.negative_ranges == 1
     assert "PLACEHOLDER POSES" in ds.description and np.all(ds.pose_position == 0)
     assert rec.write(tmp_path / "w.h5")
@@ -182,24 +201,42 @@ def test_cli_replay_json_all_protocols(tmp_path):
     assert out["checksum_failures"] > 0 and out["bytes_skipped"] == len(stream) - sum(map(len, valid))
     assert hdf5.read_format(tmp_path / "nl.h5") == "mesh"
 
-    locs = [E.loc_get_tag((0, 0, 0), 50, [(0x1151 + k, 2000 + 10 * i + k, 100, (k, k, k), 100) for k in range(3)])
-            for i in range(30)]
+    locs = [
+        E.loc_get_tag((0, 0, 0), 50, [(0x1151 + k, 2000 + 10 * i + k, 100, (k, k, k), 100) for k in range(3)])
+        for i in range(30)
+    ]
     tlv = b"".join(loc + b"\x40\x01\x01" for loc in locs)
     # a repeated answer (no new update) is a duplicate; a truncated one is dropped
     (tmp_path / "tlv.bin").write_bytes(b"\x00\x13" + tlv + locs[-1] + locs[0][:50])
-    p = run_cli("record", "--replay", tmp_path / "tlv.bin", "--protocol", "dwm1001-tlv", "-o", tmp_path / "tlv.h5",
-                "--json")
+    p = run_cli(
+        "record", "--replay", tmp_path / "tlv.bin", "--protocol", "dwm1001-tlv", "-o", tmp_path / "tlv.h5", "--json"
+    )
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
     assert out["by_type"] == {"loc_get": 31, "error": 30} and out["ranges"] == 90 and out["duplicates"] == 1
     ds = hdf5.read(tmp_path / "tlv.h5")
     assert ds.tag_ids == ("tag",) and ds.anchor_ids == ("1151", "1152", "1153")
 
-    shell = b"".join(E.lec_line([("0CA8", (0, 8, 2.25), 6.5 + i / 100), ("111C", (5, 0, 2.25), 3.2)], (1, 2, 3), 90)
-                     for i in range(25)) + b"DIST,4,AN0,0090,0.00,0\r\n"
+    shell = (
+        b"".join(
+            E.lec_line([("0CA8", (0, 8, 2.25), 6.5 + i / 100), ("111C", (5, 0, 2.25), 3.2)], (1, 2, 3), 90)
+            for i in range(25)
+        )
+        + b"DIST,4,AN0,0090,0.00,0\r\n"
+    )
     (tmp_path / "sh.bin").write_bytes(shell)
-    p = run_cli("record", "--replay", tmp_path / "sh.bin", "--protocol", "dwm1001-shell", "-o", tmp_path / "sh.h5",
-                "--json", "--self-id", "T9")
+    p = run_cli(
+        "record",
+        "--replay",
+        tmp_path / "sh.bin",
+        "--protocol",
+        "dwm1001-shell",
+        "-o",
+        tmp_path / "sh.h5",
+        "--json",
+        "--self-id",
+        "T9",
+    )
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
     assert out["by_type"] == {"lec": 25} and out["checksum_failures"] == 1 and out["ranges"] == 50
@@ -207,20 +244,46 @@ def test_cli_replay_json_all_protocols(tmp_path):
 
 
 def test_cli_bad_input(tmp_path):
-    assert_one_line_error(run_cli("record", "--replay", tmp_path / "none.bin", "--protocol", "nlink",
-                                  "-o", tmp_path / "x.h5"),
-                          "no such file")
-    assert_one_line_error(run_cli("record", "--port", str(tmp_path / "no-port"), "--protocol", "nlink", "-o",
-                                  tmp_path / "x.h5", "--duration", "1"), "cannot open serial port")
+    assert_one_line_error(
+        run_cli("record", "--replay", tmp_path / "none.bin", "--protocol", "nlink", "-o", tmp_path / "x.h5"),
+        "no such file",
+    )
+    assert_one_line_error(
+        run_cli(
+            "record",
+            "--port",
+            str(tmp_path / "no-port"),
+            "--protocol",
+            "nlink",
+            "-o",
+            tmp_path / "x.h5",
+            "--duration",
+            "1",
+        ),
+        "cannot open serial port",
+    )
     (tmp_path / "g.bin").write_bytes(b"\x00" * 100)
-    assert_one_line_error(run_cli("record", "--replay", tmp_path / "g.bin", "--protocol", "nlink",
-                                  "-o", tmp_path / "x.h5"),
-                          "no dataset written")
+    assert_one_line_error(
+        run_cli("record", "--replay", tmp_path / "g.bin", "--protocol", "nlink", "-o", tmp_path / "x.h5"),
+        "no dataset written",
+    )
     from jaxcal.methods import MESH_METHODS
 
     if "pgp" not in MESH_METHODS:
-        assert_one_line_error(run_cli("record", "--replay", tmp_path / "g.bin", "--protocol", "nlink", "-o",
-                                      tmp_path / "x.h5", "--calibrate", "pgp"), "--calibrate pgp")
+        assert_one_line_error(
+            run_cli(
+                "record",
+                "--replay",
+                tmp_path / "g.bin",
+                "--protocol",
+                "nlink",
+                "-o",
+                tmp_path / "x.h5",
+                "--calibrate",
+                "pgp",
+            ),
+            "--calibrate pgp",
+        )
 
 
 # ------------------------------------------------------------------------------------------ live / pty
@@ -232,8 +295,14 @@ def _pty():
     return master, slave, os.ttyname(slave)
 
 
-def _writer(master: int, data: bytes, seed: int, delay: float = 0.002, stop: threading.Event | None = None,
-            progress: list | None = None):
+def _writer(
+    master: int,
+    data: bytes,
+    seed: int,
+    delay: float = 0.002,
+    stop: threading.Event | None = None,
+    progress: list | None = None,
+):
     rng = random.Random(seed)
     i = 0
     while i < len(data) and not (stop and stop.is_set()):
@@ -249,9 +318,26 @@ def _writer(master: int, data: bytes, seed: int, delay: float = 0.002, stop: thr
 
 def _recorder(port: str, out, *extra):
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    return subprocess.Popen([sys.executable, "-m", "jaxcal.cli", "record", "--port", port, "--protocol", "nlink",
-                             "-o", str(out), *map(str, extra)], cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "jaxcal.cli",
+            "record",
+            "--port",
+            port,
+            "--protocol",
+            "nlink",
+            "-o",
+            str(out),
+            *map(str, extra),
+        ],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def _h5_frames(path) -> list[bytes]:
@@ -357,13 +443,18 @@ def live_capture(n_frames: int, seed: int = 0, late: tuple[int, int] | None = No
         active = [j for j in LIVE_TRUTH if late is None or j != late[0] or i >= late[1]]
         me = active[i % len(active)]
         t = 1000 + 20 * i
-        nodes = [(0, j, int(round(np.hypot(*np.subtract(LIVE_TRUTH[me], LIVE_TRUTH[j])) + rng.gauss(0, sd_mm))),
-                  180, 160)
-                 for j in active if j != me]
+        nodes = [
+            (0, j, int(round(np.hypot(*np.subtract(LIVE_TRUTH[me], LIVE_TRUTH[j])) + rng.gauss(0, sd_mm))), 180, 160)
+            for j in active
+            if j != me
+        ]
         if rng.random() < 0.1:
             out += bytes(rng.randrange(256) for _ in range(rng.randrange(1, 20)))
-        out += E.nodeframe2(0, me, t, t, 4900, (0, 0, 0), [(r, j, d, fp, rx, t) for r, j, d, fp, rx in nodes]) \
-            if i % 2 else E.nodeframe3(0, me, t, t, 4900, nodes)
+        out += (
+            E.nodeframe2(0, me, t, t, 4900, (0, 0, 0), [(r, j, d, fp, rx, t) for r, j, d, fp, rx in nodes])
+            if i % 2
+            else E.nodeframe3(0, me, t, t, 4900, nodes)
+        )
     return bytes(out)
 
 
@@ -372,7 +463,7 @@ def frame_truth(ids: list[str], frame: tuple[str, str, str]) -> np.ndarray:
     p = np.array([LIVE_TRUTH[int(s.lstrip("N"))] for s in ids], float) / 1000.0
     a0, a1, a2 = (ids.index(s) for s in frame)
     p = p - p[a0]
-    c, s = (p[a1] / np.linalg.norm(p[a1]))
+    c, s = p[a1] / np.linalg.norm(p[a1])
     p = p @ np.array([[c, -s], [s, c]])
     if p[a2, 1] < 0:
         p[:, 1] = -p[:, 1]
@@ -394,8 +485,9 @@ def test_live_pgp_replay_converges_and_equals_batch(tmp_path, capsys):
     cap = tmp_path / "mesh.bin"
     cap.write_bytes(live_capture(600))  # 120 epochs of 0.1 s
     out = tmp_path / "rec.h5"
-    code, stdout, err = _cli_inproc(capsys, "record", "--replay", cap, "--protocol", "nlink", "-o", out,
-                                    "--calibrate", "pgp", "--json")
+    code, stdout, err = _cli_inproc(
+        capsys, "record", "--replay", cap, "--protocol", "nlink", "-o", out, "--calibrate", "pgp", "--json"
+    )
     assert code == 0, err
     s = json.loads(stdout)
     cal = s["calibration"]
@@ -447,16 +539,41 @@ def test_live_pgp_failures_keep_the_recording(tmp_path):
     cap.write_bytes(live_capture(150))
     # the requested frame never ranges: the filter never starts
     out = tmp_path / "a.h5"
-    p = run_cli("record", "--replay", cap, "--protocol", "nlink", "-o", out, "--calibrate", "pgp",
-                "--config", "N1,N3,N42", "--quiet", "--json")
+    p = run_cli(
+        "record",
+        "--replay",
+        cap,
+        "--protocol",
+        "nlink",
+        "-o",
+        out,
+        "--calibrate",
+        "pgp",
+        "--config",
+        "N1,N3,N42",
+        "--quiet",
+        "--json",
+    )
     assert_one_line_error(p, "recording written to")
     assert "never started" in p.stderr
     assert json.loads(p.stdout)["calibration"]["error"]
     assert hdf5.read(out).n_epochs == 30 and not (tmp_path / "a.pgp.h5").exists()
     # the filter fails when it starts (invalid parameter): recording still written, one line
     out = tmp_path / "b.h5"
-    p = run_cli("record", "--replay", cap, "--protocol", "nlink", "-o", out, "--calibrate", "pgp",
-                "--set", "cell_m=-1", "--quiet")
+    p = run_cli(
+        "record",
+        "--replay",
+        cap,
+        "--protocol",
+        "nlink",
+        "-o",
+        out,
+        "--calibrate",
+        "pgp",
+        "--set",
+        "cell_m=-1",
+        "--quiet",
+    )
     assert p.returncode == 2 and "Traceback" not in p.stderr
     assert "live calibration stopped" in p.stderr.splitlines()[-1]
     assert hdf5.read(out).n_epochs == 30

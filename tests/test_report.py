@@ -153,9 +153,7 @@ def test_report_cli_mesh_and_sweep(mesh_files, sweep_file):
 
 def test_report_cli_sweep_only(sweep_file, tmp_path):
     # no truth needed; another metric; an unknown metric is refused by argparse
-    proc = run_cli(
-        "report", sweep_file, "-o", tmp_path / "r", "--sweep-metric", "final_rmse_m", "--json"
-    )
+    proc = run_cli("report", sweep_file, "-o", tmp_path / "r", "--sweep-metric", "final_rmse_m", "--json")
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)
     assert summary["figures"] == ["sweep_0.png"] and summary["dataset"] is None
@@ -263,9 +261,7 @@ def test_report_trajectory_and_sweep(tmp_path):
     )
     s, t = np.array([0.1, 0.2, 0.4]), np.array([0.5, 0.7, 0.9, 0.99])
     rmse = np.add.outer((s - 0.2) ** 2, (t - 0.9) ** 2) + 0.5
-    index = write_report(
-        [res], ds, tmp_path, sweeps=[{"sigma_r": s, "tau": t, "rmse": rmse, "title": "toy"}]
-    )
+    index = write_report([res], ds, tmp_path, sweeps=[{"sigma_r": s, "tau": t, "rmse": rmse, "title": "toy"}])
     pngs = {p.name for p in tmp_path.glob("*.png")}
     assert {
         "anchors_trajectory.png",
@@ -350,10 +346,7 @@ def test_sweep_surfaces_best_and_facet_match_brute_force(tmp_path):
     ]
     for f in facet:
         ref = [
-            [
-                _brute(runs, value, done, f["scenario"], s, t, f["facet"]["sigma_v"])
-                for t in f["tau"]
-            ]
+            [_brute(runs, value, done, f["scenario"], s, t, f["facet"]["sigma_v"]) for t in f["tau"]]
             for s in f["sigma_r"]
         ]
         np.testing.assert_allclose(f["rmse"], ref)  # NaN where every seed failed
@@ -419,9 +412,7 @@ def test_figures_have_labelled_axes():
             assert xl and yl, name
         assert any("[m]" in xl + yl or "[%]" in yl for xl, yl in _labels(fig)), name
     colour = {
-        "matrix": plot.pairwise_rmse_matrix(
-            np.where(np.eye(4) > 0, np.nan, rng.random((4, 4)) * 5 + 0.1), ids
-        ),
+        "matrix": plot.pairwise_rmse_matrix(np.where(np.eye(4) > 0, np.nan, rng.random((4, 4)) * 5 + 0.1), ids),
         "post": plot.posterior_grids(
             np.arange(-5.0, 5.0, 0.5),
             rng.dirichlet(np.ones(400), (2, 3)).reshape(2, 3, 20, 20),
@@ -430,9 +421,7 @@ def test_figures_have_labelled_axes():
             rng.random((3, 2)),
             np.zeros((2, 3, 2)),
         ),
-        "sweep": plot.sweep_surface(
-            np.array([0.1, 0.2]), np.array([0.5, 0.9, 0.95]), rng.random((2, 3))
-        ),
+        "sweep": plot.sweep_surface(np.array([0.1, 0.2]), np.array([0.5, 0.9, 0.95]), rng.random((2, 3))),
     }
     for name, fig in colour.items():
         assert _has_colorbar(fig), name
@@ -446,9 +435,7 @@ def test_figures_have_labelled_axes():
 def test_covariance_ellipse_matches_eigen_decomposition():
     # axis-aligned: semi-axes sqrt(chi2_2(0.95) * variance), chi2_2(0.95) = -2 ln 0.05 = 5.9915
     a, b, ang = plot.covariance_ellipse(np.diag([4.0, 1.0]), 0.95)
-    assert a == pytest.approx(np.sqrt(5.991464547 * 4.0)) and b == pytest.approx(
-        np.sqrt(5.991464547)
-    )
+    assert a == pytest.approx(np.sqrt(5.991464547 * 4.0)) and b == pytest.approx(np.sqrt(5.991464547))
     assert ang % 180.0 == pytest.approx(0.0, abs=1e-9)
     # rotated by 30 degrees
     th = np.radians(30.0)

@@ -99,9 +99,7 @@ def test_channel_model_classes_and_determinism():
     assert gross.min() >= m.outlier_min and gross.max() <= m.outlier_max
     assert gross.size / e3.size == pytest.approx(m.nlos_outlier_prob, rel=0.1)
     zero = ChannelModel(los_sigma=0.0, los_tail_prob=0.0, los_outlier_prob=0.0)
-    np.testing.assert_array_equal(
-        sample_range_errors(np.random.default_rng(0), np.ones(5, bool), zero), 0.2
-    )
+    np.testing.assert_array_equal(sample_range_errors(np.random.default_rng(0), np.ones(5, bool), zero), 0.2)
 
 
 def test_cli_simulate_stats_calibrate_evaluate(tmp_path):
@@ -132,9 +130,7 @@ def test_cli_simulate_stats_calibrate_evaluate(tmp_path):
             "p75_m",
         }
         assert got[g]["count"] == want[g]["count"]
-        median = (
-            float("nan") if got[g]["median_m"] is None else got[g]["median_m"]
-        )  # JSON null = NaN
+        median = float("nan") if got[g]["median_m"] is None else got[g]["median_m"]  # JSON null = NaN
         assert median == pytest.approx(want[g]["median_m"], nan_ok=True)
     assert got["nlos"]["count"] > 0 and got["los"]["count"] > 0
 
@@ -152,12 +148,6 @@ def test_cli_simulate_stats_calibrate_evaluate(tmp_path):
 
     # bad input: one line, exit 2
     assert_one_line_error(run_cli("stats", tmp_path / "missing.h5"), "no such file")
-    assert_one_line_error(
-        run_cli("evaluate", res_path, "--truth", res_path), "expected mesh or trajectory"
-    )
-    assert_one_line_error(
-        run_cli("simulate", "mesh", "-o", tmp_path / "x.h5", "--scenario", "nope"), "unknown"
-    )
-    assert_one_line_error(
-        run_cli("simulate", "mesh", "-o", tmp_path / "no" / "x.h5"), "does not exist"
-    )
+    assert_one_line_error(run_cli("evaluate", res_path, "--truth", res_path), "expected mesh or trajectory")
+    assert_one_line_error(run_cli("simulate", "mesh", "-o", tmp_path / "x.h5", "--scenario", "nope"), "unknown")
+    assert_one_line_error(run_cli("simulate", "mesh", "-o", tmp_path / "no" / "x.h5"), "does not exist")

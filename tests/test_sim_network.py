@@ -38,9 +38,16 @@ def test_same_seed_same_network_other_seed_other_layout():
     assert not np.allclose(np.asarray(c.positions), np.asarray(a.truth)[:, :2])
 
 
-@pytest.mark.parametrize("kw", [{"n_nodes": 3}, {"n_nodes": 10, "density": 0.0},
-                                {"n_nodes": 10, "range_limit_m": float("nan")},
-                                {"n_nodes": 10, "wall_density": -1.0}, {"n_nodes": 10, "n_epochs": 0}])
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {"n_nodes": 3},
+        {"n_nodes": 10, "density": 0.0},
+        {"n_nodes": 10, "range_limit_m": float("nan")},
+        {"n_nodes": 10, "wall_density": -1.0},
+        {"n_nodes": 10, "n_epochs": 0},
+    ],
+)
 def test_bad_settings_are_clear_errors(kw):
     with pytest.raises(JaxcalError):
         network_scenario(**kw)
@@ -48,12 +55,25 @@ def test_bad_settings_are_clear_errors(kw):
 
 def test_cli_simulates_a_network_and_refuses_bad_options(tmp_path):
     out = tmp_path / "net.h5"
-    proc = run_cli("simulate", "mesh", "--scenario", "network", "--nodes", "15", "--epochs", "20",
-                   "--range-limit", "18", "--seed", "3", "-o", out)
+    proc = run_cli(
+        "simulate",
+        "mesh",
+        "--scenario",
+        "network",
+        "--nodes",
+        "15",
+        "--epochs",
+        "20",
+        "--range-limit",
+        "18",
+        "--seed",
+        "3",
+        "-o",
+        out,
+    )
     assert proc.returncode == 0, proc.stderr
     ds = hdf5.read(out)
     assert (ds.n_nodes, ds.n_epochs) == (15, 20)
     assert_one_line_error(run_cli("simulate", "mesh", "--scenario", "network", "-o", out), "--nodes")
     assert_one_line_error(run_cli("simulate", "trajectory", "--nodes", "5", "-o", out), "mesh")
-    assert_one_line_error(run_cli("simulate", "mesh", "--nodes", "10", "--density", "-1", "-o", out),
-                          "density")
+    assert_one_line_error(run_cli("simulate", "mesh", "--nodes", "10", "--density", "-1", "-o", out), "density")

@@ -23,9 +23,7 @@ def test_ranges_respect_geometry():
     ds = simulate("small", seed=1)
     los = ds.range_los == 1
     # true distance from the (exact) poses: LOS errors are small except rare outliers
-    p = np.stack(
-        [np.interp(ds.range_time, ds.pose_time, ds.pose_position[:, d]) for d in range(3)], 1
-    )
+    p = np.stack([np.interp(ds.range_time, ds.pose_time, ds.pose_position[:, d]) for d in range(3)], 1)
     d = np.linalg.norm(p - ds.anchor_truth[ds.range_anchor], axis=1)
     err = ds.range - d
     assert np.median(np.abs(err[los])) < 0.6  # lever arm (<1 m) + LOS channel error
@@ -38,9 +36,7 @@ def test_drift_moves_poses_not_ranges():
     np.testing.assert_array_equal(a.range, b.range)
     dev = np.linalg.norm(a.pose_position - b.pose_position, axis=1)
     assert dev[0] == 0.0 and dev.max() > 0.05
-    np.testing.assert_array_equal(
-        a.pose_position[:, 2], b.pose_position[:, 2]
-    )  # horizontal drift only
+    np.testing.assert_array_equal(a.pose_position[:, 2], b.pose_position[:, 2])  # horizontal drift only
 
 
 def test_route_covers_every_road():

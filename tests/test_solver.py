@@ -31,10 +31,18 @@ def warning_lines(caplog):
 
 
 def test_status_maps_every_optimistix_result():
-    want = {"successful": S.CONVERGED, "max_steps_reached": S.MAX_STEPS,
-            "nonlinear_max_steps_reached": S.MAX_STEPS, "nonlinear_divergence": S.DIVERGED,
-            "nonfinite": S.DIVERGED, "singular": S.FAILED, "breakdown": S.FAILED, "stagnation": S.FAILED,
-            "conlim": S.FAILED, "nonfinite_input": S.FAILED}
+    want = {
+        "successful": S.CONVERGED,
+        "max_steps_reached": S.MAX_STEPS,
+        "nonlinear_max_steps_reached": S.MAX_STEPS,
+        "nonlinear_divergence": S.DIVERGED,
+        "nonfinite": S.DIVERGED,
+        "singular": S.FAILED,
+        "breakdown": S.FAILED,
+        "stagnation": S.FAILED,
+        "conlim": S.FAILED,
+        "nonfinite_input": S.FAILED,
+    }
     for name, code in want.items():
         assert int(S.status(getattr(R, name))) == code, name
     batched = jax.vmap(lambda m: fit_decay(2)[1] * m)(jnp.ones(3, dtype=int))  # traced under vmap
@@ -50,8 +58,9 @@ def test_forced_failures_are_caught():
     assert int(S.outcome(nan_start)) == S.DIVERGED
     bad_input = optx.least_squares(lambda y, _: jnp.log(y), LM, jnp.array([-1.0]), max_steps=50, throw=False)
     assert int(S.outcome(bad_input)) == S.FAILED
-    bfgs = optx.minimise(lambda y, _: -jnp.sum(y**2), optx.BFGS(rtol=1e-8, atol=1e-8), jnp.ones(1),
-                         max_steps=20, throw=False)  # unbounded below
+    bfgs = optx.minimise(
+        lambda y, _: -jnp.sum(y**2), optx.BFGS(rtol=1e-8, atol=1e-8), jnp.ones(1), max_steps=20, throw=False
+    )  # unbounded below
     assert int(S.outcome(bfgs)) == S.MAX_STEPS
 
 
@@ -121,8 +130,7 @@ def test_gp_reports_unconverged_hyperparameter_fits(mean, caplog):
     assert line.startswith("gp: 3 of 3 anchor fits")
 
 
-@pytest.mark.parametrize("kw", [dict(summary="median"), dict(summary="all"),
-                                dict(summary="median", bias="auto")])
+@pytest.mark.parametrize("kw", [dict(summary="median"), dict(summary="all"), dict(summary="median", bias="auto")])
 def test_batch_reports_the_fits_its_answer_rests_on(kw, caplog):
     from jaxcal.data import MeshDataset
     from jaxcal.mesh import batch as B

@@ -117,9 +117,7 @@ def test_sequential_fast_path_equals_run_pgp_bit_for_bit(method, range_model):
     groups, group_of = S.build_groups([(ds, None)], spec)
     got = {k: np.full(pl.n_runs, np.nan) for k in S.METRICS}
     ticks = []
-    batches = S.execute(
-        spec, pl, groups, group_of, np.zeros(pl.n_runs, bool), progress=ticks.append
-    )
+    batches = S.execute(spec, pl, groups, group_of, np.zeros(pl.n_runs, bool), progress=ticks.append)
     for idx, vals in batches:
         for k, v in vals.items():
             got[k][idx] = v

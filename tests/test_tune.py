@@ -64,8 +64,10 @@ def test_soft_cut_reduces_to_hard_rule():
     assert np.isfinite(np.asarray(lw_warm)).all()
 
 
-@pytest.mark.parametrize("kind, model, n", [("truth", "gaussian", 5), ("nlpl", "gaussian", 5),
-                                            ("nlpl", "mixture", 5), ("evidence", "gaussian", 7)])
+@pytest.mark.parametrize(
+    "kind, model, n",
+    [("truth", "gaussian", 5), ("nlpl", "gaussian", 5), ("nlpl", "mixture", 5), ("evidence", "gaussian", 7)],
+)
 def test_gradient_matches_finite_differences(kind, model, n):
     ds = make_mesh(n=n)
     p = PGPParams(**SMALL, range_model=model)
@@ -287,16 +289,16 @@ def test_tail_gradient_starts_from_calibrates_run():
     np.testing.assert_array_equal(pairs, E.heldout_pair_errors(ds, p, None))
     assert len(states) == 2
     with jax.enable_x64(True):
-        prob, _ = T.make_problem(ds, p, None, "evidence", tau_temp=0.1, est_temp=5.0,
-                                 tail_from=6, states=states)
+        prob, _ = T.make_problem(ds, p, None, "evidence", tau_temp=0.1, est_temp=5.0, tail_from=6, states=states)
         assert prob.inp.z.shape[0] == 3 and prob.k0 == 6
         assert jax.tree.leaves(prob.state)[0].shape[0] == 2  # one state per fold
         theta = T.theta_of(0.8, 0.7, 0.6, jnp.float64)
         f = jax.jit(T.objective)
         g = np.asarray(jax.jit(jax.grad(T.objective))(theta, prob))
         h = 1e-5
-        fd = np.array([(float(f(theta.at[i].add(h), prob)) - float(f(theta.at[i].add(-h), prob)))
-                       / (2 * h) for i in range(3)])
+        fd = np.array(
+            [(float(f(theta.at[i].add(h), prob)) - float(f(theta.at[i].add(-h), prob))) / (2 * h) for i in range(3)]
+        )
     assert np.all(np.isfinite(g)) and np.any(np.abs(g) > 1e-6)
     np.testing.assert_allclose(g, fd, rtol=2e-4, atol=1e-7)
     # tune with a tail: the guard's start figure is that of calibrate's run, unchanged by the split
@@ -310,8 +312,7 @@ def test_bfgs_stops_when_the_objective_stops_falling(monkeypatch):
     `PATIENCE` steps (a rippled plateau: large gradients, values within 2e-4)."""
     monkeypatch.setattr(T, "objective", lambda theta, prob: 1.0 + 1e-4 * jnp.sin(1e4 * theta[0]))
     seen = []
-    theta, steps, ok, message = T._bfgs(jnp.zeros(3), None, 1e-3, 1e-4, 50,
-                                        lambda k, v: seen.append(v))
+    theta, steps, ok, message = T._bfgs(jnp.zeros(3), None, 1e-3, 1e-4, 50, lambda k, v: seen.append(v))
     assert steps == T.PATIENCE < 50 and not ok and message == f"no progress in {T.PATIENCE} steps"
     assert len(seen) == steps and max(seen) - min(seen) <= 2e-4
 
@@ -320,12 +321,9 @@ def test_theta_round_trip_with_the_mixture_parameters():
     theta = T.theta_of(0.4, 0.2, 0.85, jnp.float64, nlos_weight=0.15, nlos_mean_m=2.5)
     v = T.values_of(theta)
     assert list(v) == list(T.tuned_names("mixture"))
-    np.testing.assert_allclose(
-        [v[k] for k in v], [0.4, 0.2, 0.85, 0.15, 2.5], rtol=1e-12
-    )
+    np.testing.assert_allclose([v[k] for k in v], [0.4, 0.2, 0.85, 0.15, 2.5], rtol=1e-12)
     prm = T._with_theta(
-        T.make_problem(make_mesh(k=3), PGPParams(**SMALL, range_model="mixture"), None,
-                       "evidence")[0].prm,
+        T.make_problem(make_mesh(k=3), PGPParams(**SMALL, range_model="mixture"), None, "evidence")[0].prm,
         theta,
     )
     np.testing.assert_allclose([float(prm.nlos_weight), float(prm.nlos_mean_m)], [0.15, 2.5])
@@ -370,8 +368,18 @@ def test_cli_tune_then_calibrate(tmp_path):
     assert {k: doc["params"][k] for k in chosen} == chosen
     assert t["accepted"] == (t["hard_after"]["nlpl"] < t["hard_before"]["nlpl"])  # 5 nodes
     # without --json: a progress bar (forced on) and one summary line with both hard figures
-    proc = run_cli("tune", f, "--objective", "evidence", "--max-steps", "2", "-o",
-                   tmp_path / "q.json", *sets, env={"JAXCAL_PROGRESS": "1"})
+    proc = run_cli(
+        "tune",
+        f,
+        "--objective",
+        "evidence",
+        "--max-steps",
+        "2",
+        "-o",
+        tmp_path / "q.json",
+        *sets,
+        env={"JAXCAL_PROGRESS": "1"},
+    )
     assert proc.returncode == 0, proc.stderr
     line = proc.stdout.strip()
     assert "\n" not in line and "calibrate's nlpl" in line and "start sigma_r=" in line
@@ -397,9 +405,7 @@ def test_cli_tune_then_calibrate(tmp_path):
     # no truth: the truth objective is a one-line error
     g = tmp_path / "nt.h5"
     hdf5.write(g, make_mesh(truth=False))
-    assert_one_line_error(
-        run_cli("tune", g, "--objective", "truth", "-o", tmp_path / "x.json"), "ground truth"
-    )
+    assert_one_line_error(run_cli("tune", g, "--objective", "truth", "-o", tmp_path / "x.json"), "ground truth")
 
 
 def test_hard_metrics_are_calibrates_run():
@@ -422,9 +428,17 @@ def test_summary_line_units_and_what_was_tuned_on():
 
     v = {"sigma_r": 0.3, "sigma_v": 0.25, "tau": 0.9}
     res = T.TuneResult(
-        params=v, start=v, tuned={**v, "sigma_r": 0.27}, objective="evidence", before=1.0,
-        after=0.9, hard_before={"heldout_m": 1.5, "nlpl": 2.0},
-        hard_after={"heldout_m": 1.6, "nlpl": 1.9}, accepted=False, steps=3, converged=False,
+        params=v,
+        start=v,
+        tuned={**v, "sigma_r": 0.27},
+        objective="evidence",
+        before=1.0,
+        after=0.9,
+        hard_before={"heldout_m": 1.5, "nlpl": 2.0},
+        hard_after={"heldout_m": 1.6, "nlpl": 1.9},
+        accepted=False,
+        steps=3,
+        converged=False,
         message="stopped at 3 steps",
         settings={"epochs": 200, "check_epochs": 2000, "cell_m": 1.0, "check_cell_m": 0.5},
         seconds={},
@@ -433,14 +447,20 @@ def test_summary_line_units_and_what_was_tuned_on():
     assert "calibrate's heldout_m (1.5 -> 1.6 m)" in line and "nats" not in line
     assert "gradient on 200 epochs (the first 200 of 2000) at 1 m cells" in line
     assert "kept the start" in line
-    tail = T.TuneResult(**{**{f: getattr(res, f) for f in res.__dataclass_fields__},
-                           "settings": {**res.settings, "epochs": 2000, "grad_from": 1800,
-                                        "cell_m": 0.5}})
-    assert "gradient through the last 200 of 2000 epochs at 0.5 m cells" in _summary(
-        tail, "evidence", "p.json")
+    tail = T.TuneResult(
+        **{
+            **{f: getattr(res, f) for f in res.__dataclass_fields__},
+            "settings": {**res.settings, "epochs": 2000, "grad_from": 1800, "cell_m": 0.5},
+        }
+    )
+    assert "gradient through the last 200 of 2000 epochs at 0.5 m cells" in _summary(tail, "evidence", "p.json")
     # better on average but within the held-out pairs' scatter: said so, start kept
-    noisy = T.TuneResult(**{**{f: getattr(res, f) for f in res.__dataclass_fields__},
-                            "hard_after": {"heldout_m": 1.4999, "nlpl": 1.9},
-                            "settings": {**res.settings, "guard_gain_t": 0.3, "guard_t_min": 1.0}})
+    noisy = T.TuneResult(
+        **{
+            **{f: getattr(res, f) for f in res.__dataclass_fields__},
+            "hard_after": {"heldout_m": 1.4999, "nlpl": 1.9},
+            "settings": {**res.settings, "guard_gain_t": 0.3, "guard_t_min": 1.0},
+        }
+    )
     line = _summary(noisy, "evidence", "p.json")
     assert "within the held-out pairs' scatter (t = 0.30 <= 1)" in line and "kept the start" in line

@@ -43,12 +43,8 @@ def _check_shape(owner: str, field: str, arr, shape: tuple, labels: str) -> None
         return
     ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape, strict=False))
     if not ok:
-        want = ", ".join(
-            lab if s is None else f"{lab}={s}" for s, lab in zip(shape, labels.split(), strict=False)
-        )
-        raise DataError(
-            f"{owner}.{field}: expected shape ({want}), got {_shape_str(arr.shape)}"
-        )
+        want = ", ".join(lab if s is None else f"{lab}={s}" for s, lab in zip(shape, labels.split(), strict=False))
+        raise DataError(f"{owner}.{field}: expected shape ({want}), got {_shape_str(arr.shape)}")
 
 
 def _check_unique(owner: str, field: str, ids: tuple[str, ...]) -> None:

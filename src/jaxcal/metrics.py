@@ -251,9 +251,7 @@ def truth_in_result_frame(result: Result, truth: np.ndarray) -> np.ndarray:
         a0, a1, a2 = anchors
         n = t.shape[0]
         if max(anchors) >= n or not np.isfinite(t[list(anchors)]).all():
-            raise JaxcalError(
-                f"frame anchors {anchors} have no truth; cannot evaluate in the result's frame"
-            )
+            raise JaxcalError(f"frame anchors {anchors} have no truth; cannot evaluate in the result's frame")
         try:
             t = to_frame(t, a0, a1, a2)
         except ValueError as e:
@@ -423,8 +421,12 @@ def predicted_uncertainty(result: Result) -> dict:
             d = np.diag(c)[fin[k]]
             if np.isfinite(d).all():
                 traces.append(float(d.sum()))
-    return {"fixed": int(fixed.sum()), "partial": int(partial.sum()), "total": int(pos.shape[0]),
-            "predicted_rmse_m": float(np.sqrt(np.mean(traces))) if traces else float("nan")}
+    return {
+        "fixed": int(fixed.sum()),
+        "partial": int(partial.sum()),
+        "total": int(pos.shape[0]),
+        "predicted_rmse_m": float(np.sqrt(np.mean(traces))) if traces else float("nan"),
+    }
 
 
 def evaluate_trajectory(result: Result, dataset: TrajectoryDataset) -> dict:

@@ -218,9 +218,7 @@ def availability_bars(ids: Sequence[str], availability: Mapping[str, Mapping[str
         w = 0.8 / max(len(confs), 1)
         for c, conf in enumerate(confs):
             a = 100.0 * np.asarray(availability[method][conf], dtype=np.float64)
-            bars = ax.bar(
-                x + (c - (len(confs) - 1) / 2) * w, a, width=w, color=_colour(c), label=conf
-            )
+            bars = ax.bar(x + (c - (len(confs) - 1) / 2) * w, a, width=w, color=_colour(c), label=conf)
             for b, v in zip(bars, a, strict=True):
                 if np.isfinite(v) and v < 95:
                     ax.text(
@@ -322,9 +320,7 @@ def node_error_distributions(
         handles.append(Patch(facecolor=_colour(c), alpha=0.6, label=conf))
     from matplotlib.lines import Line2D
 
-    handles.append(
-        Line2D([], [], marker="D", ls="", color="0.5", markeredgecolor="k", label="node RMSE")
-    )
+    handles.append(Line2D([], [], marker="D", ls="", color="0.5", markeredgecolor="k", label="node RMSE"))
     ax.set_yscale("log")
     lows = [
         np.nanpercentile(np.asarray(e, dtype=np.float64), 5)
@@ -447,9 +443,7 @@ def positions_map(
     ratio = float(np.clip((hi[0] - lo[0]) / (hi[1] - lo[1]), 0.5, 2.5))
     fig = _figure(min(6.0 * ratio, 12.0) + 0.8, 6.0 + 0.25 * (len(estimates) + 2) // 2)
     ax = fig.subplots()
-    ax.scatter(
-        t[ok, 0], t[ok, 1], marker="x", s=70, color="k", linewidths=1.8, label="truth", zorder=5
-    )
+    ax.scatter(t[ok, 0], t[ok, 1], marker="x", s=70, color="k", linewidths=1.8, label="truth", zorder=5)
     for i in np.flatnonzero(ok):
         ax.annotate(ids[i], t[i], xytext=(5, 5), textcoords="offset points", fontsize=8)
     for m, (label, (pos, cov)) in enumerate(estimates.items()):
@@ -547,13 +541,9 @@ def posterior_grids(
         for c in range(s_n):
             ax = axes[r, c]
             p = np.clip(g[c, r].T, floor, 1.0)  # rows of imshow are y
-            im = ax.imshow(
-                p, origin="lower", extent=extent, cmap="magma", norm=norm, interpolation="nearest"
-            )
+            im = ax.imshow(p, origin="lower", extent=extent, cmap="magma", norm=norm, interpolation="nearest")
             if truth is not None and np.isfinite(truth[r, :2]).all():
-                ax.scatter(
-                    [truth[r, 0]], [truth[r, 1]], marker="x", s=60, color="cyan", linewidths=1.8
-                )
+                ax.scatter([truth[r, 0]], [truth[r, 1]], marker="x", s=60, color="cyan", linewidths=1.8)
             if estimates is not None and np.isfinite(estimates[c, r, :2]).all():
                 ax.scatter(
                     [estimates[c, r, 0]],
@@ -572,8 +562,7 @@ def posterior_grids(
     if im is not None:
         fig.colorbar(im, ax=axes, label="posterior probability per cell", shrink=0.9)
     fig.suptitle(
-        "posterior grids (cyan x: truth"
-        + (", green +: estimate)" if estimates is not None else ")"),
+        "posterior grids (cyan x: truth" + (", green +: estimate)" if estimates is not None else ")"),
         fontsize=10,
     )
     return fig
@@ -685,11 +674,7 @@ def sweep_surface(
     fin = r[np.isfinite(r)]
     # a few failed corners (RMSE of metres) would flatten the interesting low region: log scale
     wide = fin.size > 0 and fin.min() > 0 and fin.max() > 5 * fin.min()
-    norm = (
-        LogNorm(fin.min(), fin.max())
-        if wide
-        else (Normalize() if not fin.size else Normalize(fin.min(), fin.max()))
-    )
+    norm = LogNorm(fin.min(), fin.max()) if wide else (Normalize() if not fin.size else Normalize(fin.min(), fin.max()))
     im = ax.pcolormesh(
         np.arange(s.size + 1) - 0.5,
         np.arange(t.size + 1) - 0.5,

@@ -99,15 +99,11 @@ def parse_posteriors(text: str | None) -> str | PosteriorSpec:
         ep = ()
     nd = tuple(n.strip() for n in nodes.split(",") if n.strip())
     if not sep or not nd or not ep or min(ep) < 0:
-        raise JaxcalError(
-            f"--posteriors: expected auto, none or NODE,...@EPOCH,... (epochs >= 0), got {text!r}"
-        )
+        raise JaxcalError(f"--posteriors: expected auto, none or NODE,...@EPOCH,... (epochs >= 0), got {text!r}")
     return PosteriorSpec(nd, ep)
 
 
-def _axis(
-    runs: Mapping[str, np.ndarray], name: str, fixed: Mapping[str, float], n: int
-) -> np.ndarray:
+def _axis(runs: Mapping[str, np.ndarray], name: str, fixed: Mapping[str, float], n: int) -> np.ndarray:
     if f"param_{name}" in runs:
         return np.asarray(runs[f"param_{name}"], dtype=np.float64)
     if name not in fixed:
@@ -163,9 +159,7 @@ def sweep_surfaces(
     fixed = dict(fixed or {})
     sig, tau = _axis(runs, "sigma_r", fixed, n), _axis(runs, "tau", fixed, n)
     rest = [name for name in swept if name not in ("sigma_r", "tau")]
-    combo = np.column_stack(
-        [np.asarray(runs[f"param_{k}"], np.float64) for k in rest] or [np.zeros(n)]
-    )
+    combo = np.column_stack([np.asarray(runs[f"param_{k}"], np.float64) for k in rest] or [np.zeros(n)])
     _, combo_id = np.unique(combo, axis=0, return_inverse=True)
     combo_id = combo_id.reshape(-1)
     value = np.where(done, np.asarray(metrics[metric], dtype=np.float64), np.nan)
@@ -204,11 +198,7 @@ def sweep_surfaces(
                 for k, name in enumerate(rest):
                     vals = np.array([combo[first_of[c], k] for c in c_vals])
                     best_others[name] = np.where(np.isfinite(surf), vals[pick], np.nan)
-            facet = (
-                {}
-                if fc is None
-                else {name: float(combo[first_of[fc], k]) for k, name in enumerate(rest)}
-            )
+            facet = {} if fc is None else {name: float(combo[first_of[fc], k]) for k, name in enumerate(rest)}
             seeds = sorted({int(x) for x in seed[sel]})
             where = sc + (f"/{cf}" if cf else "")
             extra = ", ".join(f"{k} {v:g}" for k, v in facet.items())
@@ -288,9 +278,7 @@ def _fmt(v: Any, digits: int = 2) -> str:
 
 def _table(head: Sequence[str], rows: Sequence[Sequence[str]], cls: str = "") -> str:
     h = "".join(f"<th>{html.escape(c)}</th>" for c in head)
-    body = "".join(
-        "<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows
-    )
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
     return f'<table class="{cls}"><thead><tr>{h}</tr></thead><tbody>{body}</tbody></table>'
 
 
@@ -355,8 +343,7 @@ def _ranging_section(page: _Page, ds, numbers: dict) -> None:
     qq = qq_r2(ds)
     numbers["qq"] = {"r2_qq": qq["r2_qq"], "r2": qq["r2"]}
     page.p(
-        f"Q-Q R² = {_fmt(qq['r2_qq'], 4)}; per-measurement R² of measured against true distance = "
-        f"{_fmt(qq['r2'], 4)}."
+        f"Q-Q R² = {_fmt(qq['r2_qq'], 4)}; per-measurement R² of measured against true distance = {_fmt(qq['r2'], 4)}."
     )
     page.figure(
         plot.qq_plot(qq["true_q"], qq["measured_q"], qq["r2_qq"], qq["r2"]),
@@ -366,13 +353,9 @@ def _ranging_section(page: _Page, ds, numbers: dict) -> None:
     if isinstance(ds, MeshDataset):
         pr = pairwise_rmse(ds)
         numbers["pairwise_rmse_m"] = pr
-        worst = np.dstack(
-            np.unravel_index(np.argsort(np.nan_to_num(pr, nan=-1.0), axis=None)[::-1][:3], pr.shape)
-        )[0]
+        worst = np.dstack(np.unravel_index(np.argsort(np.nan_to_num(pr, nan=-1.0), axis=None)[::-1][:3], pr.shape))[0]
         text = ", ".join(
-            f"{ds.node_ids[i]}→{ds.node_ids[j]} {pr[i, j]:.1f} m"
-            for i, j in worst
-            if np.isfinite(pr[i, j])
+            f"{ds.node_ids[i]}→{ds.node_ids[j]} {pr[i, j]:.1f} m" for i, j in worst if np.isfinite(pr[i, j])
         )
         page.figure(
             plot.pairwise_rmse_matrix(pr, ds.node_ids),
@@ -425,10 +408,7 @@ def _mesh_section(
     # (method, configuration) of each group, from the result (labels may be the user's own)
     mc = {lab: (r.method, _config_name(r, ds)) for lab, r in groups.items()}
     head = ["node"] + [f"{lab} RMSE [m]" for lab in labels]
-    rows = [
-        [nid] + [_fmt(evals[lab]["nodes"][i]["rmse_m"]) for lab in labels]
-        for i, nid in enumerate(ids)
-    ]
+    rows = [[nid] + [_fmt(evals[lab]["nodes"][i]["rmse_m"]) for lab in labels] for i, nid in enumerate(ids)]
     page.raw("<details><summary>per-node RMSE</summary>" + _table(head, rows, "num") + "</details>")
 
     # Fig. 10: availability, per method with configurations side by side
@@ -437,13 +417,8 @@ def _mesh_section(
         avail: dict[str, dict[str, np.ndarray]] = {}
         for lab in tracked:
             m, conf = mc[lab]
-            avail.setdefault(m, {})[conf] = np.array(
-                [n["availability"] for n in evals[lab]["nodes"]]
-            )
-        rows = [
-            [nid] + [_fmt(100 * avail[m][c][i], 1) for m in avail for c in avail[m]]
-            for i, nid in enumerate(ids)
-        ]
+            avail.setdefault(m, {})[conf] = np.array([n["availability"] for n in evals[lab]["nodes"]])
+        rows = [[nid] + [_fmt(100 * avail[m][c][i], 1) for m in avail for c in avail[m]] for i, nid in enumerate(ids)]
         page.h2("Availability (Fig. 10)")
         page.figure(
             plot.availability_bars(ids, avail),
@@ -467,9 +442,7 @@ def _mesh_section(
         origin[conf] = groups[lab].frame_anchors()[0]
     for m, confs in by_method.items():
         page.figure(
-            plot.node_error_distributions(
-                ids, confs, title=f"{m}: per-node position error over epochs", origin=origin
-            ),
+            plot.node_error_distributions(ids, confs, title=f"{m}: per-node position error over epochs", origin=origin),
             f"fig12a_node_errors_{m}",
             f"Fig. 12a/13a ({m}): per-epoch position errors per node (boxes 25–75 %, "
             "whiskers 5–95 %, diamonds: node RMSE).",
@@ -532,11 +505,7 @@ def _posterior_section(
     if spec == "none":
         return
     method = spec.method if isinstance(spec, PosteriorSpec) else "pgp"
-    cand = [
-        (lab, r)
-        for lab, r in groups.items()
-        if r.method == method and r.frame_anchors() is not None
-    ]
+    cand = [(lab, r) for lab, r in groups.items() if r.method == method and r.frame_anchors() is not None]
     if not cand:
         if isinstance(spec, PosteriorSpec):
             raise JaxcalError(f"--posteriors: no {method} result among the inputs")
@@ -547,15 +516,11 @@ def _posterior_section(
     if isinstance(spec, PosteriorSpec):
         unknown = [n for n in spec.nodes if n not in ids]
         if unknown:
-            raise JaxcalError(
-                f"--posteriors: unknown node(s) {', '.join(unknown)} (known: {', '.join(ids)})"
-            )
+            raise JaxcalError(f"--posteriors: unknown node(s) {', '.join(unknown)} (known: {', '.join(ids)})")
         nodes = list(spec.nodes)
         epochs = sorted(set(spec.epochs))
         if epochs[-1] >= ds.n_epochs:
-            raise JaxcalError(
-                f"--posteriors: epoch {epochs[-1]} beyond the dataset's {ds.n_epochs} epochs"
-            )
+            raise JaxcalError(f"--posteriors: epoch {epochs[-1]} beyond the dataset's {ds.n_epochs} epochs")
     else:
         epochs = [e for e in AUTO_POSTERIOR_EPOCHS if e < ds.n_epochs] or [ds.n_epochs - 1]
         fe = np.array([n["final_error_m"] for n in evals[lab]["nodes"]])
@@ -579,16 +544,12 @@ def _posterior_section(
     note = ""
     try:
         _, info = run_pgp(short, params, "report", mode=res.method, snapshot_epochs=epochs)
-    except (
-        JaxcalError
-    ) as e:  # parameters of another version: the defaults still show the filter's behaviour
+    except JaxcalError as e:  # parameters of another version: the defaults still show the filter's behaviour
         _, info = run_pgp(short, None, "report", mode=res.method, snapshot_epochs=epochs)
         note = f" (the result's parameters were not accepted: {e}; default parameters used)"
     rows = [pos[n] for n in nodes]
     grids = info.snapshots[:, rows]
-    truth = truth_in_result_frame(res, ds.truth[[pos[v] for v in ids]])[
-        [ids.index(n) for n in nodes]
-    ]
+    truth = truth_in_result_frame(res, ds.truth[[pos[v] for v in ids]])[[ids.index(n) for n in nodes]]
     numbers["posteriors"] = {
         "result": lab,
         "nodes": nodes,
@@ -621,10 +582,7 @@ def _trajectory_section(
     page.raw(_table(["method/frame", "mean anchor error [m]"], rows, "num"))
     first = next(iter(groups.values()))
     head = ["anchor"] + [f"{lab} error [m]" for lab in labels]
-    rows = [
-        [a] + [_fmt(evals[lab]["anchors"][i]["error_m"]) for lab in labels]
-        for i, a in enumerate(first.ids)
-    ]
+    rows = [[a] + [_fmt(evals[lab]["anchors"][i]["error_m"]) for lab in labels] for i, a in enumerate(first.ids)]
     page.raw(_table(head, rows, "num"))
     truth = None
     if ds.anchor_truth is not None:
@@ -634,8 +592,7 @@ def _trajectory_section(
     page.figure(
         plot.trajectory_anchors(ds.pose_position, truth, first.ids, est),
         "anchors_trajectory",
-        "Estimated anchors (±2σ from the result's covariance) over the platform path and the "
-        "surveyed anchors.",
+        "Estimated anchors (±2σ from the result's covariance) over the platform path and the surveyed anchors.",
     )
     errs = {lab: np.array([a["error_m"] for a in ev["anchors"]]) for lab, ev in evals.items()}
     page.figure(
@@ -667,9 +624,7 @@ def _sweep_section(page: _Page, sweeps: Sequence[Mapping[str, Any]], numbers: di
         s = np.asarray(sw["sigma_r"], dtype=np.float64)
         t = np.asarray(sw["tau"], dtype=np.float64)
         if r.shape != (s.size, t.size):
-            raise JaxcalError(
-                f"sweep {i}: rmse shape {r.shape} is not (sigma_r, tau) = ({s.size}, {t.size})"
-            )
+            raise JaxcalError(f"sweep {i}: rmse shape {r.shape} is not (sigma_r, tau) = ({s.size}, {t.size})")
         metric = sw.get("metric", "rmse_m")
         label = sw.get("label", SWEEP_METRICS.get(metric, metric))
         name = sw.get("title", "")
@@ -703,22 +658,16 @@ def _sweep_section(page: _Page, sweeps: Sequence[Mapping[str, Any]], numbers: di
             f"{label} over sigma_r × tau{': ' + name if name else ''} (star: lowest).",
         )
 
-        rows = [
-            [f"{s[a]:g}"] + [_sweep_cell(sw, r, others, a, b) for b in range(t.size)]
-            for a in range(s.size)
-        ]
+        rows = [[f"{s[a]:g}"] + [_sweep_cell(sw, r, others, a, b) for b in range(t.size)] for a in range(s.size)]
         page.raw(_table(["sigma_r [m] ↓ tau →"] + [f"{v:g}" for v in t], rows, "num"))
         notes = []
         if best is not None:
-            notes.append(
-                f"lowest {label}: {r[best]:.3f} at sigma_r {s[best[0]]:g} m, tau {t[best[1]]:g}"
-            )
+            notes.append(f"lowest {label}: {r[best]:.3f} at sigma_r {s[best[0]]:g} m, tau {t[best[1]]:g}")
         if "seeds" in sw and len(sw["seeds"]) > 1:
             notes.append(f"cells are the mean over seeds {', '.join(map(str, sw['seeds']))}")
         if others:
             notes.append(
-                f"other swept parameters ({', '.join(others)}): per cell the value with the "
-                "lowest mean, in brackets"
+                f"other swept parameters ({', '.join(others)}): per cell the value with the lowest mean, in brackets"
             )
         if "n_failed" in sw and np.sum(sw["n_failed"]):
             notes.append("failed runs (no node localised) are left out of the means")

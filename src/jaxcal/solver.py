@@ -23,8 +23,16 @@ import optimistix as optx
 from jaxtyping import Array, Int
 
 __all__ = [
-    "CONVERGED", "MAX_STEPS", "DIVERGED", "FAILED", "STATUS_NAMES", "STALL_STEPS", "status", "outcome",
-    "SolverReport", "report",
+    "CONVERGED",
+    "MAX_STEPS",
+    "DIVERGED",
+    "FAILED",
+    "STATUS_NAMES",
+    "STALL_STEPS",
+    "status",
+    "outcome",
+    "SolverReport",
+    "report",
     "retry_unconverged",
 ]
 
@@ -44,8 +52,9 @@ def status(result) -> Int[Array, ...]:
     r = optx.RESULTS
     hit_max = (result == r.max_steps_reached) | (result == r.nonlinear_max_steps_reached)
     diverged = (result == r.nonlinear_divergence) | (result == r.nonfinite)
-    return jnp.where(result == r.successful, CONVERGED,
-                     jnp.where(hit_max, MAX_STEPS, jnp.where(diverged, DIVERGED, FAILED)))
+    return jnp.where(
+        result == r.successful, CONVERGED, jnp.where(hit_max, MAX_STEPS, jnp.where(diverged, DIVERGED, FAILED))
+    )
 
 
 def outcome(sol: optx.Solution) -> Int[Array, ...]:
@@ -99,7 +108,13 @@ class SolverReport:
             return False
         logging.getLogger("jaxcal").warning(
             "%s: %d of %d %s did not converge (%s); reporting them as they stopped; %s",
-            method, self.failed, self.total, self.what, self.status, hint)
+            method,
+            self.failed,
+            self.total,
+            self.what,
+            self.status,
+            hint,
+        )
         return True
 
 
@@ -110,8 +125,7 @@ def report(codes, what: str = "fits") -> SolverReport:
     return SolverReport(STATUS_NAMES[worst], int(np.count_nonzero(c != CONVERGED)), int(c.size), what)
 
 
-def retry_unconverged(fit: Callable[[int], tuple[T, Array]], max_steps: int,
-                      factor: int = 4) -> tuple[T, Array, int]:
+def retry_unconverged(fit: Callable[[int], tuple[T, Array]], max_steps: int, factor: int = 4) -> tuple[T, Array, int]:
     """Run `fit(max_steps)`; when a fit stopped at the step limit, run it once more with `factor` times the steps.
 
     The retry starts afresh: a fit that converged the first time takes the same steps again and returns

@@ -87,15 +87,13 @@ __all__ = [
     "execute",
 ]
 
-SWEEPABLE = (
-    "tau", "r_est", "sigma_r", "v", "sigma_v", "alpha", "p_out", "nlos_weight", "nlos_mean_m"
-)
+SWEEPABLE = ("tau", "r_est", "sigma_r", "v", "sigma_v", "alpha", "p_out", "nlos_weight", "nlos_mean_m")
 METRICS = ("rmse_m", "final_rmse_m", "availability", "localised", "nlpl")
 EXECUTIONS = ("auto", "sequential", "vmap")
 
 
 def resolve_execution(execution: str = "auto", backend: str | None = None) -> str:
-    """"sequential" or "vmap": `execution` itself, or for "auto" the choice for `backend`
+    """ "sequential" or "vmap": `execution` itself, or for "auto" the choice for `backend`
     (default `jax.default_backend()`): "sequential" on CPU, "vmap" on accelerators."""
     if execution not in EXECUTIONS:
         raise JaxcalError(f"execution: one of {', '.join(EXECUTIONS)}; got {execution!r}")
@@ -164,9 +162,7 @@ def parse_spec(doc: Mapping) -> SweepSpec:
     )
     params = dict(doc.get("params", {}))
     swept = set(doc.get("grid", {}))
-    _need(
-        not (swept & set(params)), f"parameters both fixed and swept: {sorted(swept & set(params))}"
-    )
+    _need(not (swept & set(params)), f"parameters both fixed and swept: {sorted(swept & set(params))}")
     with_overrides(pgp.PGPParams(), params)  # unknown names and bad types fail here
     grid = []
     for name, vals in dict(doc.get("grid", {})).items():
@@ -176,8 +172,7 @@ def parse_spec(doc: Mapping) -> SweepSpec:
         )
         vals = vals if isinstance(vals, list) else [vals]
         _need(
-            len(vals) >= 1
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in vals),
+            len(vals) >= 1 and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in vals),
             f"grid.{name}: a list of numbers",
         )
         for v in vals:  # the same range checks as a single run
@@ -209,9 +204,7 @@ def parse_spec(doc: Mapping) -> SweepSpec:
                 tuple(sorted(dict(s.get("overrides", {})).items())),
             )
         )
-    return SweepSpec(
-        method, epochs, tuple(sorted(params.items())), tuple(grid), tuple(out), bs, execution
-    )
+    return SweepSpec(method, epochs, tuple(sorted(params.items())), tuple(grid), tuple(out), bs, execution)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -264,9 +257,7 @@ class Group(eqx.Module):
     span_m: float = eqx.field(static=True)
 
 
-def build_groups(
-    datasets: Sequence[tuple[MeshDataset, str | None]], spec: SweepSpec
-) -> tuple[list[Group], np.ndarray]:
+def build_groups(datasets: Sequence[tuple[MeshDataset, str | None]], spec: SweepSpec) -> tuple[list[Group], np.ndarray]:
     """Prepare every dataset and group those with equal shapes on a common grid.
 
     Args:
@@ -328,9 +319,7 @@ def run_metrics(
     return reduce_metrics(out, prm, truth, span_m)
 
 
-def reduce_metrics(
-    out: pgp.FilterOut, prm: pgp.FilterParams, truth, span_m: float
-) -> dict[str, Float[Array, ""]]:
+def reduce_metrics(out: pgp.FilterOut, prm: pgp.FilterParams, truth, span_m: float) -> dict[str, Float[Array, ""]]:
     """The sweep's metrics (`METRICS`) of one run's per-epoch outputs."""
     est = out.estimate
     have = jnp.isfinite(est).all(-1)[:, 1:]
@@ -344,9 +333,7 @@ def reduce_metrics(
 
 
 def _batched(cfg, prm, inp, logpost0, truth, span_m):
-    return jax.vmap(run_metrics, in_axes=(None, 0, 0, 0, 0, None))(
-        cfg, prm, inp, logpost0, truth, span_m
-    )
+    return jax.vmap(run_metrics, in_axes=(None, 0, 0, 0, 0, None))(cfg, prm, inp, logpost0, truth, span_m)
 
 
 # One compilation per (group config, batch shape): parameter values and datasets are array data.
@@ -361,6 +348,8 @@ def run_batch_window(cfg, prm, inp, logpost0, truth, span_m) -> dict[str, Array]
 
     out = run_lockstep(cfg, prm, inp, logpost0)
     return _reduce_batch(out, prm, truth, span_m)
+
+
 _reduce_jit = eqx.filter_jit(reduce_metrics)
 
 
@@ -386,9 +375,7 @@ def _shard(tree, mesh):
     sh = NamedSharding(mesh, PartitionSpec("runs"))
     if jax.process_count() == 1:
         return jax.device_put(tree, sh)
-    return jax.tree.map(
-        lambda a: jax.make_array_from_callback(a.shape, sh, lambda idx: a[idx]), tree
-    )
+    return jax.tree.map(lambda a: jax.make_array_from_callback(a.shape, sh, lambda idx: a[idx]), tree)
 
 
 def _gather(tree) -> dict:

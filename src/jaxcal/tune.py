@@ -162,9 +162,7 @@ def make_problem(
     prm = dataclasses.replace(prm, tau_temp=jnp.asarray(max(tau_temp, 1e-12), ftype))
     truth = truth_in_filter_order(dataset, config, order)
     if kind == "truth" and not np.isfinite(truth[1:]).any():
-        raise JaxcalError(
-            f"{dataset.name}: objective 'truth' needs ground truth (use --objective evidence)"
-        )
+        raise JaxcalError(f"{dataset.name}: objective 'truth' needs ground truth (use --objective evidence)")
     folds = targets = None
     if kind == "evidence":
         fl = tune_eval.pair_folds(dataset.n_nodes)
@@ -180,8 +178,9 @@ def make_problem(
         if states is None or len(states) != (len(folds) if folds is not None else 1):
             raise ValueError("make_problem: tail_from needs one start state per fold (or one)")
         inp = dataclasses.replace(inp, z=inp.z[tail_from:], dt=inp.dt[tail_from:])
-        cast = [jax.tree.map(lambda a: a.astype(ftype) if jnp.issubdtype(a.dtype, jnp.floating)
-                             else a, st) for st in states]
+        cast = [
+            jax.tree.map(lambda a: a.astype(ftype) if jnp.issubdtype(a.dtype, jnp.floating) else a, st) for st in states
+        ]
         state = jax.tree.map(lambda *a: jnp.stack(a), *cast) if folds is not None else cast[0]
     prob = Problem(
         cfg,
@@ -205,10 +204,7 @@ def _with_theta(prm: pgp.FilterParams, theta: Float[Array, " p"]) -> pgp.FilterP
     names = (TUNED + TUNED_MIXTURE)[: theta.shape[0]]
     return dataclasses.replace(
         prm,
-        **{
-            k: jax.nn.sigmoid(theta[i]) if k in _LOGIT else jnp.exp(theta[i])
-            for i, k in enumerate(names)
-        },
+        **{k: jax.nn.sigmoid(theta[i]) if k in _LOGIT else jnp.exp(theta[i]) for i, k in enumerate(names)},
     )
 
 
@@ -237,10 +233,7 @@ def values_of(theta) -> dict[str, float]:
     """{sigma_r, sigma_v, tau[, nlos_weight, nlos_mean_m]} of unconstrained parameters."""
     t = np.asarray(theta, dtype=np.float64)
     names = (TUNED + TUNED_MIXTURE)[: t.shape[0]]
-    return {
-        k: float(1.0 / (1.0 + np.exp(-t[i])) if k in _LOGIT else np.exp(t[i]))
-        for i, k in enumerate(names)
-    }
+    return {k: float(1.0 / (1.0 + np.exp(-t[i])) if k in _LOGIT else np.exp(t[i])) for i, k in enumerate(names)}
 
 
 def objective(theta: Float[Array, " p"], prob: Problem) -> Float[Array, ""]:
@@ -248,9 +241,7 @@ def objective(theta: Float[Array, " p"], prob: Problem) -> Float[Array, ""]:
     prm = _with_theta(prob.prm, theta)
     if prob.kind == "evidence":
         return _heldout_loss(prm, prob)
-    st, out = filter_segmented(
-        prob.cfg, prm, prob.inp, prob.logpost0, prob.segment or None, prob.state, prob.k0
-    )
+    st, out = filter_segmented(prob.cfg, prm, prob.inp, prob.logpost0, prob.segment or None, prob.state, prob.k0)
     if prob.kind == "truth":
         return final_rmse(_final_estimates(st, out, prm, prob)[None], prob.truth)
     return neg_log_predictive(out, prm.sigma_r, prm.p_out, prob.span_m)
@@ -270,9 +261,7 @@ def _heldout_loss(prm: pgp.FilterParams, prob: Problem) -> Float[Array, ""]:
     def fold(x):
         m, st0 = x
         inp = dataclasses.replace(prob.inp, z=jnp.where(m[None], jnp.nan, prob.inp.z))
-        st, out = filter_segmented(
-            prob.cfg, prm, inp, prob.logpost0, prob.segment or None, st0, prob.k0
-        )
+        st, out = filter_segmented(prob.cfg, prm, inp, prob.logpost0, prob.segment or None, st0, prob.k0)
         est = _final_estimates(st, out, prm, prob)
         ok = jnp.triu(m, 1) & jnp.isfinite(prob.targets) & jnp.isfinite(est).all(-1)[:, None]
         ok = ok & jnp.isfinite(est).all(-1)[None, :]
@@ -313,12 +302,8 @@ def _bfgs(theta0, prob: Problem, rtol: float, atol: float, max_steps: int, on_st
     opts: dict = {}
     tags: frozenset = frozenset()
     f_struct = jax.ShapeDtypeStruct((), theta0.dtype)
-    step = eqx.filter_jit(
-        lambda y, state, args: solver.step(fn, y, args, opts, state, tags)
-    )
-    terminate = eqx.filter_jit(
-        lambda y, state, args: solver.terminate(fn, y, args, opts, state, tags)
-    )
+    step = eqx.filter_jit(lambda y, state, args: solver.step(fn, y, args, opts, state, tags))
+    terminate = eqx.filter_jit(lambda y, state, args: solver.terminate(fn, y, args, opts, state, tags))
     state = solver.init(fn, theta0, prob, opts, f_struct, f_struct, tags)
     theta, steps = theta0, 0
     best, stale = math.inf, 0
@@ -415,9 +400,7 @@ def check(dataset: MeshDataset, params, config: str | None, objective_name: str)
     return _check(dataset, params, config, objective_name)[0]
 
 
-def _check(
-    dataset, params, config, objective_name, pairs=None
-) -> tuple[dict, np.ndarray | None]:
+def _check(dataset, params, config, objective_name, pairs=None) -> tuple[dict, np.ndarray | None]:
     """`check`; `pairs`: the held-out pair errors of these params when already measured."""
     m = tune_eval.hard_metrics(dataset, params, config)
     if objective_name == "evidence":
@@ -506,20 +489,27 @@ def tune(
             pairs_before = pairs
     with jax.enable_x64(True):  # gradients through thousands of log-posterior epochs need float64
         prob, _ = make_problem(
-            ds, surrogate, config, objective_name, tau_temp, segment=segment,
-            tail_from=split, states=states,
+            ds,
+            surrogate,
+            config,
+            objective_name,
+            tau_temp,
+            segment=segment,
+            tail_from=split,
+            states=states,
         )
         dtype = prob.logpost0.dtype
         theta0 = theta_of(
-            params.sigma_r, params.sigma_v, params.tau, dtype,
+            params.sigma_r,
+            params.sigma_v,
+            params.tau,
+            dtype,
             nlos_weight=params.nlos_weight if mix else None,
             nlos_mean_m=params.nlos_mean_m,
         )
         before = float(_value(theta0, prob))
         if not math.isfinite(before):
-            raise JaxcalError(
-                f"{dataset.name}: the objective is undefined at the start (no node localised?)"
-            )
+            raise JaxcalError(f"{dataset.name}: the objective is undefined at the start (no node localised?)")
 
         def step_cb(k, v):
             if progress is not None:

@@ -156,9 +156,7 @@ def fold_pair_errors(dataset: MeshDataset, mask, estimate, order) -> np.ndarray:
     return np.asarray(scores, dtype=np.float64)
 
 
-def heldout_range_error(
-    dataset: MeshDataset, params, config: str | None, n_folds: int = 2, seed: int = 0
-) -> float:
+def heldout_range_error(dataset: MeshDataset, params, config: str | None, n_folds: int = 2, seed: int = 0) -> float:
     """Cross-validated range error over pairs [m] (module docstring): the mean of
     `heldout_pair_errors`; NaN when no held-out pair has both estimates and a range."""
     return mean_pair_error(heldout_pair_errors(dataset, params, config, n_folds, seed))

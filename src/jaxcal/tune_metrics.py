@@ -35,17 +35,11 @@ def window(dataset: MeshDataset, epochs: int | None) -> MeshDataset:
     if epochs < 1:
         raise JaxcalError(f"epochs: must be >= 1, got {epochs}")
     k = int(epochs)
-    opt = {
-        f: getattr(dataset, f)[:k]
-        for f in ("fp_rssi", "rx_rssi")
-        if getattr(dataset, f) is not None
-    }
+    opt = {f: getattr(dataset, f)[:k] for f in ("fp_rssi", "rx_rssi") if getattr(dataset, f) is not None}
     return dataclasses.replace(dataset, time=dataset.time[:k], range=dataset.range[:k], **opt)
 
 
-def truth_in_filter_order(
-    dataset: MeshDataset, config: str | None, order: np.ndarray
-) -> np.ndarray:
+def truth_in_filter_order(dataset: MeshDataset, config: str | None, order: np.ndarray) -> np.ndarray:
     """(N, 2) true positions in the configuration frame, rows in filter order; NaN when unknown.
 
     As `metrics.truth_in_result_frame`: the frame is built in 3-D when the truth is 3-D, then x, y.
@@ -60,9 +54,7 @@ def truth_in_filter_order(
     return to_frame(t, a0, a1, a2)[:, :2][order]
 
 
-def track_rmse(
-    est: Float[Array, "epochs nodes 2"], truth: Float[Array, "nodes 2"]
-) -> Float[Array, ""]:
+def track_rmse(est: Float[Array, "epochs nodes 2"], truth: Float[Array, "nodes 2"]) -> Float[Array, ""]:
     """RMSE [m] over every finite (epoch, node) estimate except node 0 (a0) with a known truth.
 
     Differentiable: missing estimates are replaced before squaring, so their NaN never reaches a
@@ -77,9 +69,7 @@ def track_rmse(
     return jnp.where(cnt > 0, jnp.sqrt(jnp.where(cnt > 0, mse, 1.0)), jnp.nan)
 
 
-def final_rmse(
-    est: Float[Array, "epochs nodes 2"], truth: Float[Array, "nodes 2"]
-) -> Float[Array, ""]:
+def final_rmse(est: Float[Array, "epochs nodes 2"], truth: Float[Array, "nodes 2"]) -> Float[Array, ""]:
     """RMSE [m] of the last epoch's estimates, a0 excluded (`final_rmse_m` of `jaxcal evaluate`)."""
     return track_rmse(est[-1:], truth)
 

@@ -55,5 +55,10 @@ def truth_consistency(ds) -> dict | None:
         )
     if no_ranges:
         problems.append(f"{what}(s) in the layout without any range: {', '.join(no_ranges)}")
-    return {"median_m": median, "ranges": int(err.size), "no_ranges": no_ranges, "no_truth": no_truth,
-            "problems": problems}
+    return {
+        "median_m": median,
+        "ranges": int(err.size),
+        "no_ranges": no_ranges,
+        "no_truth": no_truth,
+        "problems": problems,
+    }

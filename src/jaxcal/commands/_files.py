@@ -102,8 +102,13 @@ def journal_summary(path: str) -> dict:
 
     header, records, torn = read_journal(path)
     times = [t for t, _ in records]
-    return {"format": "journal", "header": header, "frames": len(records), "torn_bytes": int(torn),
-            "time_span_s": [min(times), max(times)] if times else None}
+    return {
+        "format": "journal",
+        "header": header,
+        "frames": len(records),
+        "torn_bytes": int(torn),
+        "time_span_s": [min(times), max(times)] if times else None,
+    }
 
 
 def params_summary(path: str) -> dict:

@@ -14,10 +14,12 @@ def add_arguments(p) -> None:
     p.add_argument("-o", "--output", default=None, help="result file to write (required)")
     p.add_argument("--config", default=None, help=CONFIG_HELP + " 'auto': the best-connected, best-conditioned triple.")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a method parameter")
-    p.add_argument("--params", default=None, metavar="PARAMS.json",
-                   help="parameters from a JSON file (e.g. from `jaxcal tune`)")
-    p.add_argument("--list-params", action="store_true",
-                   help="print the method's parameters (default, unit, meaning) and exit")
+    p.add_argument(
+        "--params", default=None, metavar="PARAMS.json", help="parameters from a JSON file (e.g. from `jaxcal tune`)"
+    )
+    p.add_argument(
+        "--list-params", action="store_true", help="print the method's parameters (default, unit, meaning) and exit"
+    )
     add_output_flags(p, "print a JSON summary of the result")
 
 
@@ -105,15 +107,30 @@ def run(args) -> int:
         fixed = identify_ranges(ds.range, result.frame_anchors(), result.position.shape[1], ids=ds.node_ids).fixed
     pu = predicted_uncertainty(result)
     pred = pu["predicted_rmse_m"]
-    emit_json(args, {"method": result.method, "dataset": result.dataset, "output": args.output,
-                     "estimated": n_est, "nodes": n, "not_placed": n - n_est, "not_placed_ids": missing,
-                     "fixed_by_ranges": None if fixed is None else int(fixed.sum()), "seconds": elapsed,
-                     "overwrote": out.existed, "partial": pu["partial"],
-                     "predicted_rmse_m": pred if np.isfinite(pred) else None})
+    emit_json(
+        args,
+        {
+            "method": result.method,
+            "dataset": result.dataset,
+            "output": args.output,
+            "estimated": n_est,
+            "nodes": n,
+            "not_placed": n - n_est,
+            "not_placed_ids": missing,
+            "fixed_by_ranges": None if fixed is None else int(fixed.sum()),
+            "seconds": elapsed,
+            "overwrote": out.existed,
+            "partial": pu["partial"],
+            "predicted_rmse_m": pred if np.isfinite(pred) else None,
+        },
+    )
     partial = f" ({pu['partial']} with a coordinate not fixed)" if pu["partial"] else ""
     quality = f", predicted RMS uncertainty {pred:.3g} m" if np.isfinite(pred) else ", no covariance"
-    say(args, _summary(args.method, result.ids, est, fixed) + f"{partial}{quality} in {elapsed:.2f} s "
-        f"-> {args.output}{out.note()}")
+    say(
+        args,
+        _summary(args.method, result.ids, est, fixed) + f"{partial}{quality} in {elapsed:.2f} s "
+        f"-> {args.output}{out.note()}",
+    )
     return 0
 
 

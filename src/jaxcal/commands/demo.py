@@ -56,9 +56,7 @@ PAPER_TABLE_I = {
 
 
 def add_arguments(p) -> None:
-    p.add_argument(
-        "-o", "--output", default="demo-out", help="folder for the results (default ./demo-out)"
-    )
+    p.add_argument("-o", "--output", default="demo-out", help="folder for the results (default ./demo-out)")
     p.add_argument(
         "--methods",
         default=None,
@@ -134,12 +132,8 @@ def run(args) -> int:
             try:
                 result = calibrate(ds, method, config=conf)
             except Exception as e:  # one failing method must not hide the others' results
-                summary["runs"].append(
-                    {"method": method, "config": conf, "error": f"{type(e).__name__}: {e}"}
-                )
-                say(
-                    f"{method} {conf}: failed ({type(e).__name__}: {' '.join(str(e).split())[:200]})"
-                )
+                summary["runs"].append({"method": method, "config": conf, "error": f"{type(e).__name__}: {e}"})
+                say(f"{method} {conf}: failed ({type(e).__name__}: {' '.join(str(e).split())[:200]})")
                 continue
             seconds = time.perf_counter() - t0
             say(f"{method} {conf}: {seconds:.1f} s")

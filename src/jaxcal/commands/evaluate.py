@@ -5,9 +5,7 @@ from __future__ import annotations
 
 def add_arguments(p) -> None:
     p.add_argument("result", help="a result file (from `jaxcal calibrate`)")
-    p.add_argument(
-        "--truth", required=True, help="the dataset with ground truth (mesh or trajectory)"
-    )
+    p.add_argument("--truth", required=True, help="the dataset with ground truth (mesh or trajectory)")
     from jaxcal.commands._common import add_output_flags
 
     add_output_flags(p)
@@ -40,13 +38,13 @@ def run(args) -> int:
         )
         _print_consistency(result, truth, fmt)
         if none:
-            print(f"{len(none)} of {len(report['nodes'])} nodes have no estimate ({', '.join(none)}): "
-                  "the errors above are over the estimates that exist")
+            print(
+                f"{len(none)} of {len(report['nodes'])} nodes have no estimate ({', '.join(none)}): "
+                "the errors above are over the estimates that exist"
+            )
         print(f"{'node':<12}{'rmse [m]':>10}{'final [m]':>11}{'avail.':>8}")
         for n in report["nodes"]:
-            print(
-                f"{n['id']:<12}{fmt(n['rmse_m']):>10}{fmt(n['final_error_m']):>11}{100 * n['availability']:>7.1f}%"
-            )
+            print(f"{n['id']:<12}{fmt(n['rmse_m']):>10}{fmt(n['final_error_m']):>11}{100 * n['availability']:>7.1f}%")
     else:
         print(f"mean error {fmt(report['mean_error_m'])} m")
         _print_consistency(result, truth, fmt)

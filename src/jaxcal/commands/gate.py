@@ -14,9 +14,7 @@ from __future__ import annotations
 def add_arguments(p) -> None:
     p.add_argument("db", nargs="?", help="keyframe database (jaxcal file with a places/ group)")
     p.add_argument("queries", nargs="?", help="queries (jaxcal file with a queries/ group)")
-    p.add_argument(
-        "--anchors", default=None, metavar="RESULT.h5", help="calibrated anchors (result file)"
-    )
+    p.add_argument("--anchors", default=None, metavar="RESULT.h5", help="calibrated anchors (result file)")
     p.add_argument(
         "-o",
         "--output",
@@ -100,9 +98,7 @@ def run(args) -> int:
     if args.simulate is not None:
         check_output_path(args.simulate, folder=True)
         if args.db or args.queries or args.anchors:
-            raise JaxcalError(
-                "--simulate writes its own DB, queries and anchors; give no input files"
-            )
+            raise JaxcalError("--simulate writes its own DB, queries and anchors; give no input files")
         from jaxcal.sim.places import PlaceConfig, simulate_places
 
         cfg = (
@@ -119,9 +115,7 @@ def run(args) -> int:
             )
         )
         scene = simulate_places(args.seed, cfg, n_queries=500 if args.size == "paper" else 60)
-        db_file, q_file, an_file = places.write_places_files(
-            args.simulate, scene, args.anchor_error, args.seed
-        )
+        db_file, q_file, an_file = places.write_places_files(args.simulate, scene, args.anchor_error, args.seed)
     else:
         if not (args.db and args.queries and args.anchors):
             raise JaxcalError("need DB.h5 QUERIES.h5 --anchors RESULT.h5 (or --simulate DIR)")
@@ -134,10 +128,7 @@ def run(args) -> int:
     kf_pos, kf_desc, metric = places.read_db(db_file)
     q_desc, q_range, q_anchor_ids, q_ids, truth = places.read_queries(q_file, args.window)
     if q_desc.shape[1] != kf_desc.shape[1]:
-        raise JaxcalError(
-            f"{q_file}: descriptors have {q_desc.shape[1]} components, "
-            f"database has {kf_desc.shape[1]}"
-        )
+        raise JaxcalError(f"{q_file}: descriptors have {q_desc.shape[1]} components, database has {kf_desc.shape[1]}")
     result = load(an_file, ("result",))
     dim = result.position.shape[1]
     if dim > kf_pos.shape[1]:
@@ -191,17 +182,13 @@ def run(args) -> int:
         full = gating.search_full(db, jnp.asarray(q_desc), top_k=1)
         tq = truth[:, : kf_pos.shape[1]]
         summary["success_gated"], summary["error_gated_m"] = place_success(best, tq)
-        summary["success_full"], summary["error_full_m"] = place_success(
-            kf_pos[np.asarray(full.index)[:, 0]], tq
-        )
+        summary["success_full"], summary["error_full_m"] = place_success(kf_pos[np.asarray(full.index)[:, 0]], tq)
         summary["queries_with_truth"] = int(np.isfinite(tq).all(axis=1).sum())
 
     if args.output:
         from pathlib import Path
 
-        places.write_candidates(
-            args.output, q_ids, best, cand, {**settings, "top_k": args.top_k}, Path(q_file).stem
-        )
+        places.write_candidates(args.output, q_ids, best, cand, {**settings, "top_k": args.top_k}, Path(q_file).stem)
         summary["output"] = args.output
         summary["overwrote"] = out.existed
     if args.json:

@@ -24,8 +24,11 @@ def add_arguments(p) -> None:
     p.add_argument("sources", metavar="SRC", nargs="+", help="source file(s) or folder(s) of the recording")
     p.add_argument("-o", "--output", required=True, metavar="OUT", help="jaxcal HDF5 file to write")
     p.add_argument("--name", default=None, help="dataset name (default: derived from the source)")
-    p.add_argument("--force", action="store_true",
-                   help="write the file even when the layout (truth) does not fit the ranges or its ids")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="write the file even when the layout (truth) does not fit the ranges or its ids",
+    )
     add_output_flags(p)
 
 
@@ -52,8 +55,7 @@ def run(args) -> int:
 
         summary.update(nodes=ds.n_nodes, epochs=ds.n_epochs, ranges=int(np.isfinite(ds.range).sum()))
     else:
-        summary.update(anchors=ds.n_anchors, tags=len(ds.tag_ids), poses=int(ds.pose_time.shape[0]),
-                       ranges=ds.n_ranges)
+        summary.update(anchors=ds.n_anchors, tags=len(ds.tag_ids), poses=int(ds.pose_time.shape[0]), ranges=ds.n_ranges)
     summary["description"] = ds.description
     if check is not None:
         summary["layout_median_m"] = check["median_m"]
@@ -61,14 +63,17 @@ def run(args) -> int:
     summary["overwrote"] = out.existed
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     emit_json(args, summary)
-    counts = ", ".join(f"{k} {summary[k]}" for k in ("nodes", "epochs", "anchors", "tags", "poses", "ranges")
-                       if k in summary)
+    counts = ", ".join(
+        f"{k} {summary[k]}" for k in ("nodes", "epochs", "anchors", "tags", "poses", "ranges") if k in summary
+    )
     say(args, f"wrote {out}: {kind} '{ds.name}' ({counts}) in {summary['seconds']:.2f} s{out.note()}")
     if ds.description:
         say(args, f"  {ds.description}")
     if check is not None:
-        say(args, f"  layout check: median |range - layout distance| {check['median_m']:.2f} m over "
-                  f"{check['ranges']} ranges")
+        say(
+            args,
+            f"  layout check: median |range - layout distance| {check['median_m']:.2f} m over {check['ranges']} ranges",
+        )
         for problem in check["problems"]:  # only with --force
             say(args, f"  warning (--force): {problem}")
     return 0

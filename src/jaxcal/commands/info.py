@@ -56,8 +56,7 @@ def summarise(obj) -> dict:
             },
             pair_coverage=float((measured.any(axis=0).sum()) / pairs),
             never_ranged=never,
-            frames={c: {"fixed": int(f.n_fixed), "not_fixed": [r for r in f.reason if r]}
-                    for c, f in frames.items()},
+            frames={c: {"fixed": int(f.n_fixed), "not_fixed": [r for r in f.reason if r]} for c, f in frames.items()},
         )
     elif kind == "trajectory":
         r = obj.n_ranges
@@ -126,8 +125,10 @@ def run(args) -> int:
         else:
             span = f"{t[0]:.3f} .. {t[1]:.3f} s ({t[1] - t[0]:.1f} s)" if t else "empty"
         print(f"  nodes: {len(s['nodes'])}   epochs: {s['epochs']}   ranges: {s['ranges']}   time: {span}")
-        print(f"  truth: {'yes' if s['truth'] else 'no'}   LOS matrix: {'yes' if s['los_known'] else 'no'}"
-              f"   pairs ever measured: {100 * s['pair_coverage']:.1f} %")
+        print(
+            f"  truth: {'yes' if s['truth'] else 'no'}   LOS matrix: {'yes' if s['los_known'] else 'no'}"
+            f"   pairs ever measured: {100 * s['pair_coverage']:.1f} %"
+        )
         if s["configs"]:
             print("  configurations: " + ", ".join(f"{c}={tuple(v)}" for c, v in s["configs"].items()))
         nr = s["never_ranged"]
@@ -140,15 +141,18 @@ def run(args) -> int:
             print(f"    {nid:>12s}  {100 * a:6.1f} %")
     elif kind == "trajectory":
         t = s["pose_span_s"]
-        print(f"  anchors: {len(s['anchors'])}   tags: {len(s['tags'])}   poses: {s['poses']}"
-              f"   ranges: {s['ranges']}")
-        print(f"  poses: {t[0]:.3f} .. {t[1]:.3f} s   orientation: {'yes' if s['orientation'] else 'no'}"
-              f"   anchor truth: {'yes' if s['truth'] else 'no'}")
+        print(f"  anchors: {len(s['anchors'])}   tags: {len(s['tags'])}   poses: {s['poses']}   ranges: {s['ranges']}")
+        print(
+            f"  poses: {t[0]:.3f} .. {t[1]:.3f} s   orientation: {'yes' if s['orientation'] else 'no'}"
+            f"   anchor truth: {'yes' if s['truth'] else 'no'}"
+        )
         print("  ranges per anchor: " + ", ".join(f"{a}={c}" for a, c in s["ranges_per_anchor"].items()))
     else:
         print(f"  method: {s['method']}   dataset: {s['dataset']}   frame: {s['frame']}   software: {s['software']}")
-        print(f"  estimates: {s['estimated']}/{len(s['ids'])} ({s['dims']}-D)   covariance: "
-              f"{'yes' if s['covariance'] else 'no'}   track epochs: {s['track_epochs'] or 'none'}")
+        print(
+            f"  estimates: {s['estimated']}/{len(s['ids'])} ({s['dims']}-D)   covariance: "
+            f"{'yes' if s['covariance'] else 'no'}   track epochs: {s['track_epochs'] or 'none'}"
+        )
         if s["params"]:
             print("  params: " + ", ".join(f"{k}={v}" for k, v in s["params"].items()))
     return 0
@@ -167,15 +171,18 @@ def _print_other(path: str, s: dict) -> None:
             print(f"  {k}: " + ("no run done" if v is None else f"{v[0]:.3f} .. {v[1]:.3f}"))
     elif kind == "journal":
         h = s["header"]
-        print(f"{path}: jaxcal record journal ({h.get('protocol', '?')}), {s['frames']} frames"
-              + (f", torn tail of {s['torn_bytes']} bytes" if s["torn_bytes"] else ""))
+        print(
+            f"{path}: jaxcal record journal ({h.get('protocol', '?')}), {s['frames']} frames"
+            + (f", torn tail of {s['torn_bytes']} bytes" if s["torn_bytes"] else "")
+        )
         print(f"  rebuild it with: jaxcal record --replay {path} -o OUT.h5")
     elif kind == "params":
         print(f"{path}: jaxcal parameters for --method {s['method']} (from jaxcal tune)")
         print("  params: " + ", ".join(f"{k}={v}" for k, v in s["params"].items()))
         t = s["tuning"]
         if t:
-            print(f"  tuned on {t.get('dataset', '?')} with objective "
-                  f"{t.get('objective', t.get('objective_name', '?'))}")
+            print(
+                f"  tuned on {t.get('dataset', '?')} with objective {t.get('objective', t.get('objective_name', '?'))}"
+            )
     else:
         print(f"{path}: JSON summary written by jaxcal, keys: {', '.join(s['keys'])}")

@@ -29,37 +29,73 @@ PROTOCOL_CHOICES = ("nlink", "dwm1001-tlv", "dwm1001-shell")
 def add_arguments(p) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--port", help="serial device or pyserial URL (e.g. /dev/ttyUSB0, loop://, a pty path)")
-    src.add_argument("--replay", metavar="FILE",
-                     help="decode a raw byte capture, a recorder journal, or a recorded HDF5 file instead")
-    p.add_argument("--protocol", choices=PROTOCOL_CHOICES,
-                   help="wire format (required except when replaying a journal or HDF5 file)")
+    src.add_argument(
+        "--replay",
+        metavar="FILE",
+        help="decode a raw byte capture, a recorder journal, or a recorded HDF5 file instead",
+    )
+    p.add_argument(
+        "--protocol",
+        choices=PROTOCOL_CHOICES,
+        help="wire format (required except when replaying a journal or HDF5 file)",
+    )
     p.add_argument("-o", "--output", required=True, help="HDF5 file to write (mesh or trajectory)")
     p.add_argument("--baud", type=int, default=None, help="baud rate (default: nlink 921600, dwm1001 115200)")
     p.add_argument("--duration", type=float, default=None, help="seconds to record (default: until Ctrl-C)")
     p.add_argument("--raw-out", default=None, metavar="FILE", help="also write every byte read (a raw capture)")
-    p.add_argument("--format", dest="fmt", choices=("auto", "mesh", "trajectory"), default="auto",
-                   help="output format; auto: trajectory when every range has one tag end, else mesh")
+    p.add_argument(
+        "--format",
+        dest="fmt",
+        choices=("auto", "mesh", "trajectory"),
+        default="auto",
+        help="output format; auto: trajectory when every range has one tag end, else mesh",
+    )
     p.add_argument("--epoch", type=float, default=0.1, help="mesh epoch window [s] (default 0.1)")
     p.add_argument("--self-id", default=None, help="DWM1001: id of the module on the port (default tag/anchor)")
-    p.add_argument("--rate", type=float, default=10.0,
-                   help="DWM1001: TLV polling rate, and frame rate assumed when replaying a capture [Hz]")
+    p.add_argument(
+        "--rate",
+        type=float,
+        default=10.0,
+        help="DWM1001: TLV polling rate, and frame rate assumed when replaying a capture [Hz]",
+    )
     p.add_argument("--init", action="store_true", help="DWM1001 shell: enter the shell and send `lec` first")
     p.add_argument("--name", default=None, help="dataset name (default: output file stem)")
-    p.add_argument("--keep-journal", action="store_true",
-                   help="keep OUT.h5.journal after a clean stop (or after recovering OUT.h5 from it)")
-    p.add_argument("--reconnect", type=float, default=30.0, metavar="S",
-                   help="a lost device (unplugged): reopen the same port for up to S seconds (default 30; "
-                        "0: end the recording at the loss)")
-    p.add_argument("--calibrate", default=None, metavar="METHOD",
-                   help="live calibration while recording (pgp: the filter runs on epochs as they close, "
-                        "positions on stderr; OUT.pgp.h5 at the end); other mesh methods run once at the end")
-    p.add_argument("--config", default=None, metavar="A0,A1,A2",
-                   help="--calibrate: node ids of the frame, or a configuration name stored in a replayed HDF5 "
-                        "file (default: the first three by id order that ranged each other)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="--calibrate: override a method parameter")
-    p.add_argument("--min-epochs", type=int, default=20,
-                   help="--calibrate pgp: epochs each frame pair must range before the filter starts (20)")
+    p.add_argument(
+        "--keep-journal",
+        action="store_true",
+        help="keep OUT.h5.journal after a clean stop (or after recovering OUT.h5 from it)",
+    )
+    p.add_argument(
+        "--reconnect",
+        type=float,
+        default=30.0,
+        metavar="S",
+        help="a lost device (unplugged): reopen the same port for up to S seconds (default 30; "
+        "0: end the recording at the loss)",
+    )
+    p.add_argument(
+        "--calibrate",
+        default=None,
+        metavar="METHOD",
+        help="live calibration while recording (pgp: the filter runs on epochs as they close, "
+        "positions on stderr; OUT.pgp.h5 at the end); other mesh methods run once at the end",
+    )
+    p.add_argument(
+        "--config",
+        default=None,
+        metavar="A0,A1,A2",
+        help="--calibrate: node ids of the frame, or a configuration name stored in a replayed HDF5 "
+        "file (default: the first three by id order that ranged each other)",
+    )
+    p.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="--calibrate: override a method parameter"
+    )
+    p.add_argument(
+        "--min-epochs",
+        type=int,
+        default=20,
+        help="--calibrate pgp: epochs each frame pair must range before the filter starts (20)",
+    )
     p.add_argument("--quiet", action="store_true", help="no status line")
     p.add_argument("--json", action="store_true", help="print one JSON object with the counters at the end")
 
@@ -108,8 +144,7 @@ def run(args) -> int:
         from jaxcal.io.live import LiveCalibrator
 
         frame = _frame_ids(args.config, args.replay)
-        live = LiveCalibrator(params, frame, min_epochs=args.min_epochs,
-                              stream=None if args.quiet else sys.stderr)
+        live = LiveCalibrator(params, frame, min_epochs=args.min_epochs, stream=None if args.quiet else sys.stderr)
     on_flush = live.guarded_update if live is not None else None
     if not args.reconnect >= 0:
         raise JaxcalError(f"--reconnect must be >= 0 seconds, got {args.reconnect}")
@@ -119,8 +154,9 @@ def run(args) -> int:
         src = Path(args.replay)
         if out.exists() and src.exists() and out.resolve() == src.resolve():
             raise JaxcalError(f"-o {out} is the input: it would be written over; choose another -o")
-        recovering = src.name.endswith(".journal") and (src.parent / src.name[: -len(".journal")]).resolve() \
-            == out.resolve()
+        recovering = (
+            src.name.endswith(".journal") and (src.parent / src.name[: -len(".journal")]).resolve() == out.resolve()
+        )
         rec = recorder.replay(args.replay, args.protocol, kw, rate=args.rate, on_flush=on_flush)
         stopped = "end of input"
     else:
@@ -131,8 +167,17 @@ def run(args) -> int:
         rec = recorder.Recording(args.protocol, **kw)
         status = None if args.quiet else capture.status_printer(sys.stderr)
         stopped = capture.record_serial(
-            rec, args.port, out, baud=args.baud, duration=args.duration, raw_out=args.raw_out,
-            rate=args.rate, shell_init=args.init, status=status, on_flush=on_flush, reconnect_s=args.reconnect,
+            rec,
+            args.port,
+            out,
+            baud=args.baud,
+            duration=args.duration,
+            raw_out=args.raw_out,
+            rate=args.rate,
+            shell_init=args.init,
+            status=status,
+            on_flush=on_flush,
+            reconnect_s=args.reconnect,
         )
     if live is not None:
         live.guarded_update(rec, final=True)  # the last epochs; sets the frame written to the file
@@ -157,19 +202,26 @@ def run(args) -> int:
             summary["calibration"] = {"method": args.calibrate, "error": calib_error}
     if args.json:
         print_json(summary)
-    counts = (f"{summary['frames']} frames, {summary['ranges']} ranges, {summary['checksum_failures']} checksum "
-              f"failures, {summary['bytes_skipped']} bytes skipped")
+    counts = (
+        f"{summary['frames']} frames, {summary['ranges']} ranges, {summary['checksum_failures']} checksum "
+        f"failures, {summary['bytes_skipped']} bytes skipped"
+    )
     code = {"sigint": 130, "sigterm": 143, "device lost": 3}.get(stopped, 0)
-    why = {"sigint": "interrupted (Ctrl-C)", "sigterm": "terminated (SIGTERM)",
-           "device lost": "the device was lost and did not come back"}.get(stopped)
+    why = {
+        "sigint": "interrupted (Ctrl-C)",
+        "sigterm": "terminated (SIGTERM)",
+        "device lost": "the device was lost and did not come back",
+    }.get(stopped)
     if stopped == "error":
         detail = (rec.link or {}).get("error") or "the reader failed"
         where = f"; {out} holds everything received" if written else ""
         raise JaxcalError(f"recording stopped: {detail}{where}")
     if not written:
         where = f"; the raw frames are in {out}.journal" if rec.journal is not None else ""
-        msg = (f"no dataset written: {summary['ranges']} ranges between {summary['nodes']} nodes "
-               f"({counts}) is not enough for a {rec.kind() or 'mesh'} file{where}")
+        msg = (
+            f"no dataset written: {summary['ranges']} ranges between {summary['nodes']} nodes "
+            f"({counts}) is not enough for a {rec.kind() or 'mesh'} file{where}"
+        )
         if why is None:
             raise JaxcalError(msg)
         sys.stderr.write(f"jaxcal: {why}: {msg}\n")
@@ -199,9 +251,7 @@ def _frame_ids(text: str | None, replay: str | None):
 
         ds, name = resolve_config(load(replay, ("mesh",)), cfg)
         return tuple(ds.node_ids[i] for i in ds.config(name))
-    raise JaxcalError(
-        f"--config {cfg}: a live recording has no stored configurations; give three node ids A0,A1,A2"
-    )
+    raise JaxcalError(f"--config {cfg}: a live recording has no stored configurations; give three node ids A0,A1,A2")
 
 
 def _overrides(items) -> dict:

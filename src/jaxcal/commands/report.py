@@ -67,9 +67,7 @@ def is_sweep_file(path: str) -> bool:
 
     try:
         with h5py.File(path, "r") as f:
-            return (
-                all(k in f for k in ("runs", "metrics", "done")) and "jaxcal_format" not in f.attrs
-            )
+            return all(k in f for k in ("runs", "metrics", "done")) and "jaxcal_format" not in f.attrs
     except OSError:
         return False
 
@@ -88,9 +86,7 @@ def sweep_file_surfaces(path: str, metric: str = "rmse_m", others: str = "best")
         fixed = dict(ast.literal_eval(str(attrs.get("fixed_params", "{}"))))
     except (ValueError, SyntaxError):
         raise JaxcalError(f"{path}: unreadable fixed_params attribute") from None
-    if not {"param_sigma_r", "param_tau"} <= set(
-        runs
-    ):  # an unswept one: its fixed or default value
+    if not {"param_sigma_r", "param_tau"} <= set(runs):  # an unswept one: its fixed or default value
         from jaxcal.mesh.pgp import PGPParams
 
         fixed = {k: fixed.get(k, getattr(PGPParams(), k)) for k in ("sigma_r", "tau")}
@@ -136,7 +132,12 @@ def run(args) -> int:
     total = report_sections(truth is not None, len(results), isinstance(truth, MeshDataset), len(sweeps))
     with progress_bar(total, "report", "section", enabled=not (args.quiet or args.json)) as bar:
         index = write_report(
-            results, truth, args.output, labels=args.label, posteriors=spec, sweeps=sweeps,
+            results,
+            truth,
+            args.output,
+            labels=args.label,
+            posteriors=spec,
+            sweeps=sweeps,
             progress=bar.update,
         )
     seconds = time.perf_counter() - t0

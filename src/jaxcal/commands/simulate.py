@@ -10,9 +10,7 @@ from __future__ import annotations
 
 def add_arguments(p) -> None:
     p.add_argument("kind", choices=("mesh", "trajectory"), help="what to simulate")
-    p.add_argument(
-        "-o", "--output", required=True, help="file to write (contract mesh / trajectory)"
-    )
+    p.add_argument("-o", "--output", required=True, help="file to write (contract mesh / trajectory)")
     p.add_argument(
         "--scenario",
         default=None,
@@ -20,12 +18,18 @@ def add_arguments(p) -> None:
     )
     net = p.add_argument_group("mesh --scenario network (random site at constant density)")
     net.add_argument("--nodes", type=int, default=None, help="number of nodes N (>= 4)")
-    net.add_argument("--density", type=float, default=100.0 / 60.0,
-                     help="nodes per 100 m^2 (default 1.67: 10 nodes in 30 x 20 m)")
-    net.add_argument("--range-limit", type=float, default=28.0,
-                     help="pairs farther apart are never measured [m] (default 28)")
-    net.add_argument("--wall-density", type=float, default=2.0 / 6.0,
-                     help="walls (4-12 m segments) per 100 m^2 (default 0.33: 2 per 600 m^2)")
+    net.add_argument(
+        "--density", type=float, default=100.0 / 60.0, help="nodes per 100 m^2 (default 1.67: 10 nodes in 30 x 20 m)"
+    )
+    net.add_argument(
+        "--range-limit", type=float, default=28.0, help="pairs farther apart are never measured [m] (default 28)"
+    )
+    net.add_argument(
+        "--wall-density",
+        type=float,
+        default=2.0 / 6.0,
+        help="walls (4-12 m segments) per 100 m^2 (default 0.33: 2 per 600 m^2)",
+    )
     net.add_argument("--epochs", type=int, default=200, help="epochs at 10 Hz (default 200)")
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same file)")
     p.add_argument(
@@ -47,9 +51,7 @@ def _trajectory_simulator():
     except ModuleNotFoundError as e:
         if e.name != "jaxcal.sim.trajectory":
             raise
-        raise JaxcalError(
-            "trajectory simulation is not available yet (jaxcal.sim.trajectory missing)"
-        ) from None
+        raise JaxcalError("trajectory simulation is not available yet (jaxcal.sim.trajectory missing)") from None
     return simulate, SCENARIOS
 
 
@@ -74,9 +76,16 @@ def run(args) -> int:
         if args.drift:
             raise JaxcalError("--drift applies to trajectory simulation only")
         scenario, kwargs = "network", {}
-        SCENARIOS = {scenario: network_scenario(
-            args.nodes, seed=args.seed, density=args.density, range_limit_m=args.range_limit,
-            wall_density=args.wall_density, n_epochs=args.epochs)}
+        SCENARIOS = {
+            scenario: network_scenario(
+                args.nodes,
+                seed=args.seed,
+                density=args.density,
+                range_limit_m=args.range_limit,
+                wall_density=args.wall_density,
+                n_epochs=args.epochs,
+            )
+        }
     elif args.kind == "mesh":
         from jaxcal.sim.mesh import SCENARIOS, simulate
 
@@ -89,9 +98,7 @@ def run(args) -> int:
         scenario = args.scenario or "campus"
         kwargs = {"drift": args.drift}
     if scenario not in SCENARIOS:
-        raise JaxcalError(
-            f"unknown {args.kind} scenario {scenario!r} (known: {', '.join(sorted(SCENARIOS))})"
-        )
+        raise JaxcalError(f"unknown {args.kind} scenario {scenario!r} (known: {', '.join(sorted(SCENARIOS))})")
     out = check_output_path(args.output)
     ds = simulate(SCENARIOS[scenario] if network else scenario, seed=args.seed, **kwargs)
     hdf5.write(out.path, ds)

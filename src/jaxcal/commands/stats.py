@@ -43,9 +43,7 @@ def format_table(groups: dict, reference: dict | None = None) -> str:
     for key, label in _ROWS:
         row = f"{label:<22}" + "".join(f"{groups[g][key]:>16.2f}" for g, _ in cols)
         if reference:
-            row += "".join(
-                f"{reference[g].get(key, float('nan')):>13.2f}" for g in ("los", "nlos", "all")
-            )
+            row += "".join(f"{reference[g].get(key, float('nan')):>13.2f}" for g in ("los", "nlos", "all"))
         lines.append(row)
     return "\n".join(lines)
 

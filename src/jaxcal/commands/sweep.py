@@ -15,12 +15,8 @@ FORMAT = "jaxcal-sweep"
 
 def add_arguments(p) -> None:
     p.add_argument("spec", help="sweep specification (TOML, see docs/cluster.md)")
-    p.add_argument(
-        "-o", "--output", required=True, metavar="SWEEP.h5", help="results (created or resumed)"
-    )
-    p.add_argument(
-        "--restart", action="store_true", help="discard an existing output instead of resuming"
-    )
+    p.add_argument("-o", "--output", required=True, metavar="SWEEP.h5", help="results (created or resumed)")
+    p.add_argument("--restart", action="store_true", help="discard an existing output instead of resuming")
     p.add_argument(
         "--batch-size",
         type=int,
@@ -40,9 +36,7 @@ def add_arguments(p) -> None:
         metavar="HOST:PORT",
         help="jax.distributed coordinator address (multi-process sweep)",
     )
-    p.add_argument(
-        "--num-processes", type=int, default=None, help="number of processes (with --coordinator)"
-    )
+    p.add_argument("--num-processes", type=int, default=None, help="number of processes (with --coordinator)")
     p.add_argument(
         "--process-id",
         type=int,
@@ -181,15 +175,11 @@ def run(args) -> int:
     pl = S.plan(spec)
     writer = jax.process_index() == 0
     # batch size changes neither runs nor results: it is not part of the identity of a sweep
-    ident = hashlib.sha256(
-        repr((spec.method, spec.epochs, spec.params, spec.grid, spec.scenarios)).encode()
-    )
+    ident = hashlib.sha256(repr((spec.method, spec.epochs, spec.params, spec.grid, spec.scenarios)).encode())
     ident = ident.hexdigest()
     runs = {
         "scenario": np.asarray([spec.scenarios[pl.datasets[d][0]].label for d in pl.dataset_of]),
-        "config": np.asarray(
-            [spec.scenarios[pl.datasets[d][0]].config or "" for d in pl.dataset_of]
-        ),
+        "config": np.asarray([spec.scenarios[pl.datasets[d][0]].config or "" for d in pl.dataset_of]),
         "seed": np.asarray([pl.datasets[d][1] for d in pl.dataset_of], np.int64),
         **{f"param_{k}": v for k, v in pl.values.items()},
     }
@@ -199,9 +189,7 @@ def run(args) -> int:
     if writer and out.exists() and not args.restart:
         attrs, _, old_metrics, old_done = read_store(str(out))
         if attrs.get("spec_id") != ident or old_done.shape != done.shape:
-            raise JaxcalError(
-                f"{out}: written by a different sweep spec (use --restart or another output)"
-            )
+            raise JaxcalError(f"{out}: written by a different sweep spec (use --restart or another output)")
         done, metrics = old_done, {k: old_metrics.get(k, metrics[k]) for k in S.METRICS}
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
@@ -218,11 +206,7 @@ def run(args) -> int:
     }
     resumed = int(done.sum())
     todo = pl.n_runs - resumed
-    log = (
-        (lambda msg: sys.stderr.write(msg + "\n"))
-        if writer and not args.quiet
-        else (lambda msg: None)
-    )
+    log = (lambda msg: sys.stderr.write(msg + "\n")) if writer and not args.quiet else (lambda msg: None)
     execution = S.resolve_execution(spec.execution)
     log(
         f"sweep: {pl.n_runs} runs on {jax.device_count()} device(s) in "
@@ -237,17 +221,13 @@ def run(args) -> int:
         log = lambda msg: None  # noqa: E731
     computed, t0 = 0, time.perf_counter()
     if todo:
-        groups, group_of = S.build_groups(
-            _datasets(spec, pl, os.path.dirname(os.path.abspath(args.spec))), spec
-        )
+        groups, group_of = S.build_groups(_datasets(spec, pl, os.path.dirname(os.path.abspath(args.spec))), spec)
         if writer:
             _write_store(out, attrs, runs, metrics, done)
         with progress_bar(todo, "sweep", "run", enabled=bar_on) as bar:
             # per run with one process; with several, per batch (a callback sees local runs only)
             per_run = jax.process_count() == 1
-            batches = S.execute(
-                spec, pl, groups, group_of, done, progress=bar.update if per_run else None
-            )
+            batches = S.execute(spec, pl, groups, group_of, done, progress=bar.update if per_run else None)
             for idx, vals in batches:
                 for k, v in vals.items():
                     metrics[k][idx] = v

@@ -57,9 +57,7 @@ def add_arguments(p) -> None:
         "values): steps cost ~K windowed epochs; the objective then sees the final estimates only",
     )
     p.add_argument("--max-steps", type=int, default=12, help="BFGS step limit (12)")
-    p.add_argument(
-        "--tau-temp", type=float, default=0.05, help="temperature of the soft tau cut (0.05)"
-    )
+    p.add_argument("--tau-temp", type=float, default=0.05, help="temperature of the soft tau cut (0.05)")
     p.add_argument(
         "--set",
         action="append",
@@ -85,7 +83,8 @@ def _summary(res, objective: str, out) -> str:
     st = res.settings
     grad = st["epochs"] - st.get("grad_from", 0)
     on = (
-        f"gradient through the last {grad} of {st['epochs']} epochs" if grad < st["epochs"]
+        f"gradient through the last {grad} of {st['epochs']} epochs"
+        if grad < st["epochs"]
         else f"gradient on {st['epochs']} epochs"
     )
     if st["epochs"] < st["check_epochs"]:
@@ -131,9 +130,7 @@ def run(args) -> int:
         or args.max_steps < 1
         or args.tau_temp < 0
     ):
-        raise JaxcalError(
-            "--epochs, --tail and --max-steps must be >= 1, --cell > 0, --tau-temp >= 0"
-        )
+        raise JaxcalError("--epochs, --tail and --max-steps must be >= 1, --cell > 0, --tau-temp >= 0")
     out = check_output_path(args.output, [args.dataset])
     ds = load(args.dataset, ("mesh",))
     ds, config = resolve_config(ds, args.config)

@@ -26,7 +26,12 @@ from collections.abc import Iterator
 from pathlib import Path
 
 __all__ = [
-    "atomic_path", "atomic_write_text", "atomic_write_bytes", "discard_temporaries", "umask", "REPLACE_LOCK",
+    "atomic_path",
+    "atomic_write_text",
+    "atomic_write_bytes",
+    "discard_temporaries",
+    "umask",
+    "REPLACE_LOCK",
 ]
 
 # Held while a temporary file is renamed into place, and by `discard_temporaries`.

@@ -29,8 +29,15 @@ from jaxcal.io.journal import JournalWriter, describe_journal, open_exclusive
 from jaxcal.io.link import RECONNECT_S, STALL_S, SerialLink, open_port
 from jaxcal.io.recorder import DEFAULT_BAUD, Recording
 
-__all__ = ["record_serial", "check_outputs", "journal_path", "finish_journal", "status_printer", "warner",
-           "recover_command"]
+__all__ = [
+    "record_serial",
+    "check_outputs",
+    "journal_path",
+    "finish_journal",
+    "status_printer",
+    "warner",
+    "recover_command",
+]
 
 
 def journal_path(out: str | os.PathLike) -> Path:
@@ -123,8 +130,14 @@ def record_serial(
         raw_fd = open_exclusive(raw_out) if raw_out else None
         rec.journal = JournalWriter(
             journal_path(out),
-            {"protocol": rec.protocol, "self_id": rec.self_id or "", "time_source": "host",
-             "start_wall_time": rec.start_wall_time, "port": port, "baud": baud},
+            {
+                "protocol": rec.protocol,
+                "self_id": rec.self_id or "",
+                "time_source": "host",
+                "start_wall_time": rec.start_wall_time,
+                "port": port,
+                "baud": baud,
+            },
         )
     except BaseException:
         ser.close()
@@ -132,8 +145,20 @@ def record_serial(
             os.close(raw_fd)
         raise
     t0 = time.monotonic()
-    link = SerialLink(ser, port, baud, rec.protocol, rec.decoder, rec.journal, raw_fd, t0, rate=rate,
-                      shell_init=shell_init, reconnect_s=reconnect_s, stall_s=stall_s)
+    link = SerialLink(
+        ser,
+        port,
+        baud,
+        rec.protocol,
+        rec.decoder,
+        rec.journal,
+        raw_fd,
+        t0,
+        rate=rate,
+        shell_init=shell_init,
+        reconnect_s=reconnect_s,
+        stall_s=stall_s,
+    )
     stop: dict = {"why": None}
     old: dict = {}
 
@@ -198,8 +223,13 @@ def record_serial(
         if raw_fd is not None:
             os.fsync(raw_fd)
             os.close(raw_fd)
-        rec.link = {"faults": link.faults, "losses": link.losses, "reconnects": link.reconnects,
-                    "bytes_read": link.bytes_rx, "error": link.error}
+        rec.link = {
+            "faults": link.faults,
+            "losses": link.losses,
+            "reconnects": link.reconnects,
+            "bytes_read": link.bytes_rx,
+            "error": link.error,
+        }
     if status is not None:
         status(dict(rec.summary(), link=link.state_text(time.monotonic())), time.monotonic() - t0, True)
     return stop["why"] or "duration"
@@ -241,8 +271,10 @@ def status_printer(stream=sys.stderr) -> Callable[[dict, float, bool], None]:
         fps = (s["frames"] - state["frames"]) / dt
         rps = (s["ranges"] - state["ranges"]) / dt
         state.update(t=elapsed, frames=s["frames"], ranges=s["ranges"])
-        line = (f"{elapsed:7.1f} s  frames {s['frames']} ({fps:.1f}/s)  ranges {s['ranges']} ({rps:.1f}/s)  "
-                f"checksum failures {s['checksum_failures']}  skipped {s['bytes_skipped']} B  nodes {s['nodes']}")
+        line = (
+            f"{elapsed:7.1f} s  frames {s['frames']} ({fps:.1f}/s)  ranges {s['ranges']} ({rps:.1f}/s)  "
+            f"checksum failures {s['checksum_failures']}  skipped {s['bytes_skipped']} B  nodes {s['nodes']}"
+        )
         if s.get("link", "ok") != "ok":
             line += f"  link: {s['link']}"
         if tty:

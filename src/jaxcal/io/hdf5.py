@@ -225,8 +225,11 @@ def check_covariance(cov, ids) -> None:
         if b.size == 0:
             continue
         scale = max(float(np.max(np.abs(b))), 1e-300)
-        if not np.isfinite(b).all() or np.max(np.abs(b - b.T)) > tol * scale \
-                or np.min(np.linalg.eigvalsh(0.5 * (b + b.T))) < -tol * scale:
+        if (
+            not np.isfinite(b).all()
+            or np.max(np.abs(b - b.T)) > tol * scale
+            or np.min(np.linalg.eigvalsh(0.5 * (b + b.T))) < -tol * scale
+        ):
             name = ids[k] if k < len(ids) else str(k)
             raise FormatError(f"covariance of {name!r} is not symmetric positive semi-definite; refusing to write it")
 

@@ -45,7 +45,7 @@ RETRY_S = 0.25
 HINTS = {
     "nlink": "powered, and an output frame chosen in NAssistant?",
     "dwm1001-tlv": "the module does not answer dwm_loc_get: in shell mode? "
-                   "(power-cycle it, or use the shell with --init)",
+    "(power-cycle it, or use the shell with --init)",
     "dwm1001-shell": "is `lec` streaming? (--init starts it; lec toggles)",
 }
 
@@ -81,10 +81,22 @@ class SerialLink:
         opener: ``(port, baud) -> serial`` (tests).
     """
 
-    def __init__(self, ser, port: str, baud: int, protocol: str, decoder, journal: JournalWriter,
-                 raw_fd: int | None, t0: float, rate: float = 10.0, shell_init: bool = False,
-                 reconnect_s: float = RECONNECT_S, stall_s: float = STALL_S,
-                 opener: Callable = open_port) -> None:
+    def __init__(
+        self,
+        ser,
+        port: str,
+        baud: int,
+        protocol: str,
+        decoder,
+        journal: JournalWriter,
+        raw_fd: int | None,
+        t0: float,
+        rate: float = 10.0,
+        shell_init: bool = False,
+        reconnect_s: float = RECONNECT_S,
+        stall_s: float = STALL_S,
+        opener: Callable = open_port,
+    ) -> None:
         self.ser, self.port, self.baud, self.protocol = ser, port, baud, protocol
         self.decoder, self.journal, self.raw_fd, self.t0 = decoder, journal, raw_fd, t0
         self.rate, self.shell_init, self.reconnect_s, self.stall_s = rate, shell_init, reconnect_s, stall_s
@@ -286,8 +298,10 @@ class SerialLink:
                 ser = self.opener(self.port, self.baud)
             except Exception as e:  # noqa: BLE001 - not back yet (no such file, busy, ...)
                 if time.monotonic() - self._lost_since >= self.reconnect_s:
-                    self._fault(f"{self.port}: device did not come back within {self.reconnect_s:g} s "
-                                f"({tries} tries, last: {_one_line(e)}); the recording ends here")
+                    self._fault(
+                        f"{self.port}: device did not come back within {self.reconnect_s:g} s "
+                        f"({tries} tries, last: {_one_line(e)}); the recording ends here"
+                    )
                     self.ended = "device lost"
                     return False
                 continue
@@ -329,8 +343,10 @@ class SerialLink:
         k = SHELL_START_FACTOR if self.protocol == "dwm1001-shell" and not self._framed else 1
         if nbytes >= k * GARBAGE_BYTES and since >= k * GARBAGE_S and not self._garbage:
             self._garbage = True
-            out.append(f"{self.port}: {nbytes} bytes in {since:.1f} s but no valid frame: wrong --baud "
-                       f"(now {self.baud}) or --protocol (now {self.protocol})?")
+            out.append(
+                f"{self.port}: {nbytes} bytes in {since:.1f} s but no valid frame: wrong --baud "
+                f"(now {self.baud}) or --protocol (now {self.protocol})?"
+            )
         elif self._garbage and nbytes < GARBAGE_BYTES and since < GARBAGE_S:
             self._garbage = False
             out.append(f"{self.port}: valid frames again")

@@ -48,8 +48,10 @@ __all__ = ["LiveCalibrator", "frame_ids"]
 
 def _id_key(ids):
     """Natural order: digit runs compare as numbers (N2 < N10, 2 < 10)."""
+
     def key(s):
         return tuple((0, int(p), "") if p.isdigit() else (1, 0, p) for p in re.split(r"(\d+)", str(s)) if p)
+
     return key
 
 
@@ -95,8 +97,17 @@ class LiveCalibrator:
         stream: where the table goes (None: silent). every_s: table period [s of recording time].
     """
 
-    def __init__(self, params=None, frame=None, min_epochs: int = 20, buffer_epochs: int = 3000,
-                 settle_epochs: int = 10, chunk: int = 1, stream=sys.stderr, every_s: float = 5.0) -> None:
+    def __init__(
+        self,
+        params=None,
+        frame=None,
+        min_epochs: int = 20,
+        buffer_epochs: int = 3000,
+        settle_epochs: int = 10,
+        chunk: int = 1,
+        stream=sys.stderr,
+        every_s: float = 5.0,
+    ) -> None:
         from jaxcal.mesh.pgp import PGPParams
         from jaxcal.params import with_overrides
 
@@ -235,15 +246,19 @@ class LiveCalibrator:
                 self.frame = frame_ids(self.pair_epochs, list(rec.ids), self.min_epochs, self.wanted)
             if self.frame is not None:
                 self._start(rec, final)
-                self._say(f"live pgp: started after {self.n_closed} epochs, frame a0,a1,a2 = "
-                          f"{','.join(self.frame)}, {self.n} nodes, grid half-width {self.radius:.1f} m")
+                self._say(
+                    f"live pgp: started after {self.n_closed} epochs, frame a0,a1,a2 = "
+                    f"{','.join(self.frame)}, {self.n} nodes, grid half-width {self.radius:.1f} m"
+                )
         else:
             new = [e for e in self.epochs if e[0] >= fed]
             if new and max(int(max(e[2].max(initial=0), e[3].max(initial=0))) for e in new) >= self.n:
                 self.restarts += 1
                 self._start(rec, final)
-                self._say(f"live pgp: restarted with {self.n} nodes from {len(self.epochs)} buffered epochs "
-                          f"(new node {self.ids[-1]}), grid half-width {self.radius:.1f} m")
+                self._say(
+                    f"live pgp: restarted with {self.n} nodes from {len(self.epochs)} buffered epochs "
+                    f"(new node {self.ids[-1]}), grid half-width {self.radius:.1f} m"
+                )
             elif new:
                 self._feed(new, final)
         if self.pgp is not None and self.track:
@@ -260,14 +275,15 @@ class LiveCalibrator:
 
     def settled(self) -> np.ndarray:
         """(N,) bool: localised and moved less than a cell over the last `settle_epochs` epochs."""
-        tr = self.track[-self.settle_epochs:]
+        tr = self.track[-self.settle_epochs :]
         if len(tr) < self.settle_epochs:
             return np.zeros(self.n, bool)
         last = tr[-1]
         d = np.stack([np.hypot(*(self._row(x) - self._row(last)).T) for x in tr])
         with np.errstate(invalid="ignore"):
-            return np.isfinite(d).all(axis=0) & (np.nanmax(np.where(np.isfinite(d), d, np.inf), axis=0)
-                                                  < self.params.cell_m)
+            return np.isfinite(d).all(axis=0) & (
+                np.nanmax(np.where(np.isfinite(d), d, np.inf), axis=0) < self.params.cell_m
+            )
 
     def _mean_cov(self):
         from jaxcal.mesh import pgp
@@ -279,8 +295,13 @@ class LiveCalibrator:
         w = p / p.sum(axis=(1, 2), keepdims=True)
         mx, my = (w * X).sum((1, 2)), (w * Y).sum((1, 2))
         dx, dy = X[None] - mx[:, None, None], Y[None] - my[:, None, None]
-        cov = np.stack([np.stack([(w * dx * dx).sum((1, 2)), (w * dx * dy).sum((1, 2))], -1),
-                        np.stack([(w * dx * dy).sum((1, 2)), (w * dy * dy).sum((1, 2))], -1)], -2)
+        cov = np.stack(
+            [
+                np.stack([(w * dx * dx).sum((1, 2)), (w * dx * dy).sum((1, 2))], -1),
+                np.stack([(w * dx * dy).sum((1, 2)), (w * dy * dy).sum((1, 2))], -1),
+            ],
+            -2,
+        )
         # as `run_pgp` reports it: the grid read as a histogram density (+ cell^2 / 12 per free axis)
         return cov + pgp.cell_variance(g.cell_m, cov.shape[0], tuple(self.ids.index(s) for s in self.frame))
 
@@ -326,8 +347,10 @@ class LiveCalibrator:
 
         if self.pgp is None:
             need = f"the frame {','.join(self.wanted)}" if self.wanted else "three nodes"
-            raise JaxcalError(f"the filter never started: {need} did not range each other in "
-                              f"{self.min_epochs} epochs ({self.n_closed} epochs recorded)")
+            raise JaxcalError(
+                f"the filter never started: {need} did not range each other in "
+                f"{self.min_epochs} epochs ({self.n_closed} epochs recorded)"
+            )
         if list(dataset.node_ids) != self.ids or len(self.track) != dataset.n_epochs:
             raise JaxcalError("live result does not match the recording (nodes or epochs)")
         track = np.stack([self._row(r) for r in self.track])
@@ -335,9 +358,16 @@ class LiveCalibrator:
         cov[~np.isfinite(track).all(axis=2).any(axis=0)] = np.nan
         a = [self.ids.index(s) for s in self.frame]
         res = Result(
-            ids=list(dataset.node_ids), position=track[-1], method="pgp", dataset=dataset.name,
-            frame=f"anchors:{a[0]},{a[1]},{a[2]}", params=as_dict(self.params), covariance=cov,
-            track_time=np.asarray(dataset.time, np.float64), track_position=track, software=_software(),
+            ids=list(dataset.node_ids),
+            position=track[-1],
+            method="pgp",
+            dataset=dataset.name,
+            frame=f"anchors:{a[0]},{a[1]},{a[2]}",
+            params=as_dict(self.params),
+            covariance=cov,
+            track_time=np.asarray(dataset.time, np.float64),
+            track_position=track,
+            software=_software(),
         )
         from jaxcal.mesh.identify import mask_result
         from jaxcal.mesh.pgp import with_pair_covariance

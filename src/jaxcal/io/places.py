@@ -53,10 +53,7 @@ def read_db(path: str | os.PathLike):
     if pos.ndim != 2 or pos.shape[1] not in (2, 3) or pos.shape[0] < 1:
         raise FormatError(f"{path}: places/position must have shape (K, 2|3), got {pos.shape}")
     if desc.ndim != 2 or desc.shape[0] != pos.shape[0] or desc.dtype.kind not in "fiu":
-        raise FormatError(
-            f"{path}: places/descriptor must be numeric of shape ({pos.shape[0]}, F), "
-            f"got {desc.shape}"
-        )
+        raise FormatError(f"{path}: places/descriptor must be numeric of shape ({pos.shape[0]}, F), got {desc.shape}")
     if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(desc))):
         raise FormatError(f"{path}: places/position and places/descriptor must be finite")
     if metric not in ("cosine", "l2"):
@@ -77,9 +74,7 @@ def read_queries(path: str | os.PathLike, window_s: float):
             raise FormatError(f"{path}: no 'queries' group (not a query file)")
         desc = np.asarray(_dataset(f, "queries/descriptor", path))
         if desc.ndim != 2 or desc.shape[0] < 1 or desc.dtype.kind not in "fiu":
-            raise FormatError(
-                f"{path}: queries/descriptor must be numeric of shape (Q, F), got {desc.shape}"
-            )
+            raise FormatError(f"{path}: queries/descriptor must be numeric of shape (Q, F), got {desc.shape}")
         q = desc.shape[0]
         ids = _dataset(f, "queries/id", path, False) or [f"q{i}" for i in range(q)]
         truth = _dataset(f, "queries/truth", path, False)
@@ -99,15 +94,11 @@ def read_queries(path: str | os.PathLike, window_s: float):
                 window_s,
             )
         else:
-            raise FormatError(
-                f"{path}: queries need 'queries/range' or 'queries/time' in a trajectory file"
-            )
+            raise FormatError(f"{path}: queries need 'queries/range' or 'queries/time' in a trajectory file")
     if len(ids) != q:
         raise FormatError(f"{path}: queries/id has {len(ids)} entries for {q} descriptors")
     if ranges.shape != (q, len(anchor_ids)):
-        raise FormatError(
-            f"{path}: query ranges must have shape ({q}, {len(anchor_ids)}), got {ranges.shape}"
-        )
+        raise FormatError(f"{path}: query ranges must have shape ({q}, {len(anchor_ids)}), got {ranges.shape}")
     if np.any(ranges < 0) or np.any(np.isinf(ranges)):
         raise FormatError(f"{path}: query ranges must be non-negative (NaN = not heard)")
     if truth is not None:
@@ -154,8 +145,7 @@ def _write_with_group(path, obj, group: str, items: dict, attrs: dict | None = N
             g.attrs[k] = v
 
 
-def write_candidates(path: str | os.PathLike, query_ids, best, candidates, params: dict,
-                     dataset: str) -> None:
+def write_candidates(path: str | os.PathLike, query_ids, best, candidates, params: dict, dataset: str) -> None:
     """OUT.h5: a `gate` result (best candidate position per query) plus the `candidates/` group.
 
     Args:

@@ -88,8 +88,14 @@ class Recording:
         self_id: DWM1001 id of the module on the port (see `make_decoder`).
     """
 
-    def __init__(self, protocol: str, epoch_s: float = 0.1, fmt: str = "auto", name: str = "recording",
-                 self_id: str | None = None) -> None:
+    def __init__(
+        self,
+        protocol: str,
+        epoch_s: float = 0.1,
+        fmt: str = "auto",
+        name: str = "recording",
+        self_id: str | None = None,
+    ) -> None:
         if protocol not in PROTOCOLS:
             raise JaxcalError(f"unknown protocol {protocol!r} (known: {', '.join(PROTOCOLS)})")
         if not epoch_s > 0:
@@ -131,8 +137,9 @@ class Recording:
                     self.negative_ranges += 1
                     continue
                 si, di = self._index(r.src, r.src_role), self._index(r.dst, r.dst_role)
-                self._rows.append((t, si, di, r.range_m, r.fp_rssi, r.rx_rssi,
-                                   r.src_role == "tag", r.dst_role == "tag"))
+                self._rows.append(
+                    (t, si, di, r.range_m, r.fp_rssi, r.rx_rssi, r.src_role == "tag", r.dst_role == "tag")
+                )
                 added += 1
         self.n_ranges += added
         return added
@@ -153,8 +160,10 @@ class Recording:
             self._cols = {n: np.zeros(0, d) for n, d in zip(names, dtypes, strict=False)}
         if self._rows:
             cols = list(zip(*self._rows, strict=False))
-            self._cols = {n: np.concatenate([self._cols[n], np.asarray(c, d)])
-                          for n, c, d in zip(names, cols, dtypes, strict=False)}
+            self._cols = {
+                n: np.concatenate([self._cols[n], np.asarray(c, d)])
+                for n, c, d in zip(names, cols, dtypes, strict=False)
+            }
             self._rows = []
         return self._cols
 
@@ -211,8 +220,13 @@ class Recording:
         if self.frame_ids is not None and all(i in self.ids for i in self.frame_ids):
             configs = (("default", tuple(self.ids[i] for i in self.frame_ids)),)
         return MeshDataset(
-            name=self.name, node_ids=list(self.ids), time=et, range=rng,
-            fp_rssi=fp if has_fp else None, rx_rssi=rx if has_rx else None, configs=configs,
+            name=self.name,
+            node_ids=list(self.ids),
+            time=et,
+            range=rng,
+            fp_rssi=fp if has_fp else None,
+            rx_rssi=rx if has_rx else None,
+            configs=configs,
             description=(
                 f"Recorded by jaxcal record ({self.protocol}). Epochs: {self.epoch_s:g} s windows of "
                 f"{self.time_source} time; range = mean of the window's measurements. Raw frames in /raw."
@@ -284,8 +298,11 @@ class Recording:
                 g.create_dataset("offsets", data=off)
                 g.create_dataset("time", data=np.asarray(self.raw_time, np.float64))
                 g.attrs.update(
-                    protocol=self.protocol, time_source=self.time_source, start_wall_time=self.start_wall_time,
-                    self_id=self.self_id or "", epoch_s=self.epoch_s,
+                    protocol=self.protocol,
+                    time_source=self.time_source,
+                    start_wall_time=self.start_wall_time,
+                    self_id=self.self_id or "",
+                    epoch_s=self.epoch_s,
                     placeholder_poses=int(not hasattr(ds, "node_ids")),
                     decoder_stats=json.dumps(self.decoder.stats.as_dict()),
                 )
@@ -296,8 +313,12 @@ class Recording:
         """Counters for `--json` and the status line."""
         s = self.decoder.stats.as_dict()
         s.update(
-            ranges=self.n_ranges, negative_ranges=self.negative_ranges, duplicates=self.duplicates,
-            nodes=len(self.ids), format=self.kind(), protocol=self.protocol,
+            ranges=self.n_ranges,
+            negative_ranges=self.negative_ranges,
+            duplicates=self.duplicates,
+            nodes=len(self.ids),
+            format=self.kind(),
+            protocol=self.protocol,
         )
         return s
 
@@ -336,8 +357,14 @@ def _reframe(protocol: str, raw: bytes) -> bytes:
     return raw + b"\n" if protocol == "dwm1001-shell" else raw
 
 
-def replay(path: str | os.PathLike, protocol: str | None, rec_kwargs: dict, rate: float = 10.0,
-           on_flush: Callable[[Recording], None] | None = None, flush_s: float = 1.0) -> Recording:
+def replay(
+    path: str | os.PathLike,
+    protocol: str | None,
+    rec_kwargs: dict,
+    rate: float = 10.0,
+    on_flush: Callable[[Recording], None] | None = None,
+    flush_s: float = 1.0,
+) -> Recording:
     """Decode a raw byte capture, a recorder journal or a recorded HDF5 file (its `raw` group).
 
     Args:

@@ -163,9 +163,7 @@ def place_epochs(
     if int(p.min_refs) < 3:
         raise JaxcalError(f"parameter min_refs: must be at least 3, got {p.min_refs}")
     if not 0.0 <= float(p.min_spread_ratio) <= 1.0:
-        raise JaxcalError(
-            f"parameter min_spread_ratio: must lie in [0, 1], got {p.min_spread_ratio}"
-        )
+        raise JaxcalError(f"parameter min_spread_ratio: must lie in [0, 1], got {p.min_spread_ratio}")
     d = jnp.asarray(distances)
     if d.shape[0] == 0:
         return np.zeros((0, d.shape[1], 2))
@@ -236,8 +234,9 @@ def _proxy(range_m, dist, track, anchors, p: ClosedFormParams, n_proxy: int = 3)
     count = np.where(own, placed, -1)[todo]  # nodes placed in each epoch to redo (-1: no own frame)
     for *_, tr_k, _ in found_all:  # per epoch, the frame that places the most nodes (ties: own, best proxy)
         moved = to_frame_track(tr_k[todo], a0, a1, a2)
-        n_moved = np.where(np.isfinite(moved[:, [a0, a1, a2]]).all(axis=(1, 2)),
-                           np.isfinite(moved).all(axis=2).sum(axis=1), -1)
+        n_moved = np.where(
+            np.isfinite(moved[:, [a0, a1, a2]]).all(axis=(1, 2)), np.isfinite(moved).all(axis=2).sum(axis=1), -1
+        )
         more = n_moved > count
         rows = np.flatnonzero(todo)[more]
         out[rows] = moved[more]
@@ -275,11 +274,7 @@ def calibrate(
         Result in frame `anchors:a0,a1,a2` with the (K, N, 2) per-epoch track and the per-node
         median of the track as final position.
     """
-    p = (
-        params
-        if isinstance(params, ClosedFormParams)
-        else with_overrides(ClosedFormParams(), params)
-    )
+    p = params if isinstance(params, ClosedFormParams) else with_overrides(ClosedFormParams(), params)
     anchors = dataset.config(config)
     dist = symmetrise(dataset.range)
     track = place_epochs(dist, anchors, p)

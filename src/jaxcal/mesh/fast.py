@@ -101,9 +101,7 @@ def extract_window(
     return win, org, out
 
 
-def scatter_window(
-    win: Float[Array, "w w"], org: Int[Array, " 2"], n_side: int
-) -> Float[Array, "n n"]:
+def scatter_window(win: Float[Array, "w w"], org: Int[Array, " 2"], n_side: int) -> Float[Array, "n n"]:
     """Full-grid log posterior with the window's values and `-inf` elsewhere."""
     full = jnp.full((n_side, n_side), -jnp.inf, win.dtype)
     return jax.lax.dynamic_update_slice(full, win, (org[0], org[1]))
@@ -135,11 +133,7 @@ def predict_window(
         return (jnp.log(jnp.maximum(s, tiny)) + vmax + mx[:, None] + my[None, :]).reshape(-1)
 
     def direct():
-        d = G.safe_norm(
-            jnp.stack(
-                [cells[None, :, 0] - src[:, 0, None], cells[None, :, 1] - src[:, 1, None]], axis=-1
-            )
-        )
+        d = G.safe_norm(jnp.stack([cells[None, :, 0] - src[:, 0, None], cells[None, :, 1] - src[:, 1, None]], axis=-1))
         logt = -0.5 * jnp.square((d - step_m) / sigma_v)
         return jax.nn.logsumexp(vals[:, None] + logt, axis=0)
 
@@ -294,15 +288,11 @@ def ring_loglik_grid(
 
     def neighbour(j, acc):
         def add(acc):
-            fac, ok = _ring_factor(
-                org, ns, grid, hyp_pos[j], hyp_logw[j], hyp_sigma[j], z_i[j], p_out, nlos, span
-            )
+            fac, ok = _ring_factor(org, ns, grid, hyp_pos[j], hyp_logw[j], hyp_sigma[j], z_i[j], p_out, nlos, span)
 
             def direct():
                 cells = grid.cells(hyp_logw.dtype)
-                ll = G.pair_loglik(
-                    cells, hyp_pos[j], hyp_logw[j], z_i[j], hyp_sigma[j], p_out, nlos
-                )
+                ll = G.pair_loglik(cells, hyp_pos[j], hyp_logw[j], z_i[j], hyp_sigma[j], p_out, nlos)
                 return ll.reshape(ns, ns)
 
             return acc + jax.lax.cond(ok, lambda: jnp.log(fac), direct)

@@ -55,9 +55,7 @@ def to_frame(points: np.ndarray, a0: int, a1: int, a2: int) -> np.ndarray:
     return (p - o) @ rot.T
 
 
-def align_rigid(
-    est: np.ndarray, truth: np.ndarray, reflection: bool = True
-) -> tuple[np.ndarray, np.ndarray]:
+def align_rigid(est: np.ndarray, truth: np.ndarray, reflection: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Best rigid motion (rotation, translation, optionally reflection; no scale) taking `est` onto `truth`.
 
     Least squares over the rows where both are finite (Kabsch / Umeyama without scale).

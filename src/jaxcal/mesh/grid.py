@@ -111,11 +111,7 @@ def extent_radius(ranges: np.ndarray, a0: int, margin_m: float, cap_m: float) ->
 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            med = (
-                np.nanmedian(ranges, axis=0)
-                if ranges.shape[0]
-                else np.full(ranges.shape[1:], np.nan)
-            )
+            med = np.nanmedian(ranges, axis=0) if ranges.shape[0] else np.full(ranges.shape[1:], np.nan)
     n = med.shape[0]
     dist = np.where(np.isfinite(med), med, np.inf)
     np.fill_diagonal(dist, 0.0)
@@ -169,9 +165,7 @@ def top_k(x: Float[Array, " n"], k: int) -> tuple[Float[Array, " k"], Int[Array,
     # rank of each candidate (0: largest; ties to the lower index) by (2k)^2 comparisons, which
     # is cheaper than a float64 sort on CPU; then place each candidate at its rank
     i = jnp.arange(m)
-    before = (xc[None, :] > xc[:, None]) | (
-        (xc[None, :] == xc[:, None]) & (i[None, :] < i[:, None])
-    )
+    before = (xc[None, :] > xc[:, None]) | ((xc[None, :] == xc[:, None]) & (i[None, :] < i[:, None]))
     rank = jnp.sum(before, axis=1)
     j = jnp.zeros((m,), i.dtype).at[rank].set(i)[:k]
     return xc[j], cand[j]
@@ -263,11 +257,7 @@ def predict_direct(logp, cells, k: int, step_m, sigma_v):
     """Eq. (7)-(8) evaluated directly: (C, K) transition terms, any `v dt`."""
     vals, idx = top_k(logp, k)
     src = cells[idx]
-    d = safe_norm(
-        jnp.stack(
-            [cells[None, :, 0] - src[:, 0, None], cells[None, :, 1] - src[:, 1, None]], axis=-1
-        )
-    )
+    d = safe_norm(jnp.stack([cells[None, :, 0] - src[:, 0, None], cells[None, :, 1] - src[:, 1, None]], axis=-1))
     logt = -0.5 * jnp.square((d - step_m) / sigma_v)
     return jax.nn.logsumexp(vals[:, None] + logt, axis=0)
 
@@ -352,7 +342,10 @@ def range_kernel_log(
     lam = 1.0 / mean_m
     ls = lam * sigma
     log_emg = (
-        0.5 * math.log(2 * math.pi) + jnp.log(ls) + 0.5 * ls * ls - lam * e
+        0.5 * math.log(2 * math.pi)
+        + jnp.log(ls)
+        + 0.5 * ls * ls
+        - lam * e
         + jax.scipy.special.log_ndtr(e * (1.0 / sigma) - ls)
     )
     return jnp.logaddexp(jnp.log1p(-w) + q, jnp.log(w) + log_emg)
@@ -411,9 +404,7 @@ def node_loglik_sparse(
 
     def neighbour(j, acc):
         def add(acc):
-            return acc + pair_loglik(
-                cells, hyp_pos[j], hyp_logw[j], z_i[j], hyp_sigma[j], p_out, nlos
-            )
+            return acc + pair_loglik(cells, hyp_pos[j], hyp_logw[j], z_i[j], hyp_sigma[j], p_out, nlos)
 
         return jax.lax.cond(use_i[j], jax.checkpoint(add) if remat else add, lambda a: a, acc)
 

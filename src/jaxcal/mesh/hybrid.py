@@ -99,12 +99,18 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
     if track_position is not None and track_position.shape[-1] != position.shape[1]:
         track_position = None  # a 3-D refinement has no 2-D track to keep
     res = Result(
-        ids=dataset.node_ids, position=position, method="pgp+batch", dataset=dataset.name,
+        ids=dataset.node_ids,
+        position=position,
+        method="pgp+batch",
+        dataset=dataset.name,
         frame="anchors:" + ",".join(str(a) for a in anchors),
-        params={**{f"pgp.{k}": v for k, v in res_pgp.params.items()},
-                **{f"batch.{k}": v for k, v in {**as_dict(b), **outcome.params()}.items()}},
+        params={
+            **{f"pgp.{k}": v for k, v in res_pgp.params.items()},
+            **{f"batch.{k}": v for k, v in {**as_dict(b), **outcome.params()}.items()},
+        },
         covariance=covariance,
         track_time=res_pgp.track_time if track_position is not None else None,
-        track_position=track_position, software=f"jaxcal {__version__}",
+        track_position=track_position,
+        software=f"jaxcal {__version__}",
     )
     return identify.mask_result(res, dataset.range)  # what the ranges cannot fix: NaN rows + a warning

@@ -193,9 +193,7 @@ def identify(measured: np.ndarray, anchors, dim: int = 2, ids=None, seed: int = 
             if not _mirror_ok(int(i), nb, anchors, dim):
                 peel.append(int(i))
                 only = sorted(nb)
-                reason[i] = (
-                    f"{ids[i]} ranges only {_names(only, ids)}" if only else f"{ids[i]} has no fixed neighbour"
-                )
+                reason[i] = f"{ids[i]} ranges only {_names(only, ids)}" if only else f"{ids[i]} has no fixed neighbour"
         if not peel:
             break
         alive[peel] = False
@@ -216,8 +214,13 @@ def identify(measured: np.ndarray, anchors, dim: int = 2, ids=None, seed: int = 
     pairs = [(i, j) for i, j in itertools.combinations(range(n), 2) if not adj[i, j]]
     missing = tuple((min(i, j), max(i, j)) for i, j in ((a0, a1), (a0, a2), (a1, a2)) if not adj[i, j])
     return Identifiability(
-        anchors=anchors, dim=dim, fixed=fixed, reason=tuple("" if fixed[i] else reason[i] for i in range(n)),
-        frame_fixed=frame_fixed, missing_frame_links=missing, never_ranged=tuple(pairs),
+        anchors=anchors,
+        dim=dim,
+        fixed=fixed,
+        reason=tuple("" if fixed[i] else reason[i] for i in range(n)),
+        frame_fixed=frame_fixed,
+        missing_frame_links=missing,
+        never_ranged=tuple(pairs),
     )
 
 
@@ -238,8 +241,9 @@ def _triangle_quality(d: np.ndarray, tri) -> float:
     return float(4.0 * np.sqrt(3.0) * area / den) if den > 0 else 0.0
 
 
-def choose_frame(range_m: np.ndarray, dim: int = 2, max_candidates: int = 12,
-                 exclude=()) -> tuple[tuple[int, int, int], Identifiability] | None:
+def choose_frame(
+    range_m: np.ndarray, dim: int = 2, max_candidates: int = 12, exclude=()
+) -> tuple[tuple[int, int, int], Identifiability] | None:
     """The best frame triple of a recording: most nodes fixed, then best connected and conditioned.
 
     Candidates are triples whose three pairs are all measured (so the paper's direct frame rule applies)
@@ -310,8 +314,7 @@ def describe(ident: Identifiability, ids, method: str = "", suggestion=None) -> 
     frame = "/".join(ids[v] for v in a)
     if not ident.frame_fixed:
         links = ", ".join(f"{ids[i]}-{ids[j]}" for i, j in ident.missing_frame_links)
-        parts.append(f"frame ({frame}) not determined by the ranges"
-                     + (f" (never ranged: {links})" if links else ""))
+        parts.append(f"frame ({frame}) not determined by the ranges" + (f" (never ranged: {links})" if links else ""))
     why = [ident.reason[i] for i in bad if ident.reason[i] != FRAME_UNDETERMINED]
     placed = n - bad.size
     msg = f"{head}{bad.size} of {n} nodes cannot be placed ({_names(bad, ids)}); {placed} fixed"
@@ -322,8 +325,7 @@ def describe(ident: Identifiability, ids, method: str = "", suggestion=None) -> 
     if suggestion is not None:
         tri, nf = suggestion
         if nf > placed:
-            msg += (f"; suggested frame {ids[tri[0]]}/{ids[tri[1]]}/{ids[tri[2]]} (--config auto) fixes "
-                    f"{nf}/{n}")
+            msg += f"; suggested frame {ids[tri[0]]}/{ids[tri[1]]}/{ids[tri[2]]} (--config auto) fixes {nf}/{n}"
     return msg
 
 
@@ -364,7 +366,6 @@ def apply(result, ident: Identifiability, method: str | None = None, warn: bool 
             if line:
                 logging.getLogger("jaxcal").warning("%s", line)
     return result
-
 
 
 def first_complete_epoch(range_m: np.ndarray, anchors) -> int | None:
@@ -435,8 +436,14 @@ def undetermined_frame_result(dataset, anchors, method: str, dim: int = 2, param
         return None
     pos = np.full((dataset.n_nodes, dim), np.nan)
     pos[anchors[0]] = 0.0
-    res = Result(ids=dataset.node_ids, position=pos, method=method, dataset=dataset.name,
-                 frame="anchors:{},{},{}".format(*anchors), params=dict(params or {}))
+    res = Result(
+        ids=dataset.node_ids,
+        position=pos,
+        method=method,
+        dataset=dataset.name,
+        frame="anchors:{},{},{}".format(*anchors),
+        params=dict(params or {}),
+    )
     return apply(res, ident, suggest_from=dataset.range)
 
 

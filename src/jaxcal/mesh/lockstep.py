@@ -36,9 +36,7 @@ def _pad(inp: pgp.FilterInputs, chunk: int) -> pgp.FilterInputs:
 
 def _write(buf, out, k, rows):
     """Rows [k, k + rows) of every FilterOut field of one run's buffer (`rows` static)."""
-    return jax.tree.map(
-        lambda b, o: jax.lax.dynamic_update_slice_in_dim(b, o[:rows], k, 0), buf, out
-    )
+    return jax.tree.map(lambda b, o: jax.lax.dynamic_update_slice_in_dim(b, o[:rows], k, 0), buf, out)
 
 
 def _window_step(cfg, prm, inp, st, buf, k, ready, n_ep: int, chunk: int):
@@ -68,16 +66,14 @@ def _full_step(cfg, prm, inp, st, buf, k, active):
 
 @eqx.filter_jit
 def _window_batch(cfg, prm, inp, st, buf, k, ready, n_ep, chunk):
-    return jax.vmap(
-        lambda p, i, s, b, kk, r: _window_step(cfg, p, i, s, b, kk, r, n_ep, chunk)
-    )(prm, inp, st, buf, k, ready)
+    return jax.vmap(lambda p, i, s, b, kk, r: _window_step(cfg, p, i, s, b, kk, r, n_ep, chunk))(
+        prm, inp, st, buf, k, ready
+    )
 
 
 @eqx.filter_jit
 def _full_batch(cfg, prm, inp, st, buf, k, active):
-    return jax.vmap(lambda p, i, s, b, kk, a: _full_step(cfg, p, i, s, b, kk, a))(
-        prm, inp, st, buf, k, active
-    )
+    return jax.vmap(lambda p, i, s, b, kk, a: _full_step(cfg, p, i, s, b, kk, a))(prm, inp, st, buf, k, active)
 
 
 @eqx.filter_jit

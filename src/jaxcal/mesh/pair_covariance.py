@@ -56,9 +56,17 @@ def pair_spread(range_m: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray
     return out
 
 
-def variance_components(jac: np.ndarray, e: np.ndarray, w: np.ndarray, spread: np.ndarray, i: np.ndarray,
-                        j: np.ndarray, n_nodes: int, prior_prec: np.ndarray,
-                        shared: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+def variance_components(
+    jac: np.ndarray,
+    e: np.ndarray,
+    w: np.ndarray,
+    spread: np.ndarray,
+    i: np.ndarray,
+    j: np.ndarray,
+    n_nodes: int,
+    prior_prec: np.ndarray,
+    shared: np.ndarray | None = None,
+) -> tuple[np.ndarray, dict]:
     """Sigma (M, M) of the pair errors and its components (see the module docstring).
 
     Args:
@@ -103,13 +111,27 @@ def variance_components(jac: np.ndarray, e: np.ndarray, w: np.ndarray, spread: n
     else:  # a pattern that leaves nothing in the residuals (e.g. constant, with a fitted offset)
         b_hat, amp, info = np.full(pat.shape[1], np.nan), np.diag(t[3:]), np.diag(gram)
     sigma = sigma0 + pat @ amp @ pat.T
-    return sigma, {"t_I": float(t[0]), "t_D": float(t[1]), "t_N": float(t[2]), "t_S": np.diag(amp).tolist(),
-                   "b_hat": np.atleast_1d(b_hat).tolist(), "b_info": np.atleast_1d(info).tolist()}
+    return sigma, {
+        "t_I": float(t[0]),
+        "t_D": float(t[1]),
+        "t_N": float(t[2]),
+        "t_S": np.diag(amp).tolist(),
+        "b_hat": np.atleast_1d(b_hat).tolist(),
+        "b_info": np.atleast_1d(info).tolist(),
+    }
 
 
-def pair_covariance(jac: np.ndarray, e: np.ndarray, w: np.ndarray, spread: np.ndarray, i: np.ndarray,
-                    j: np.ndarray, n_nodes: int, prior_prec: np.ndarray,
-                    shared: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+def pair_covariance(
+    jac: np.ndarray,
+    e: np.ndarray,
+    w: np.ndarray,
+    spread: np.ndarray,
+    i: np.ndarray,
+    j: np.ndarray,
+    n_nodes: int,
+    prior_prec: np.ndarray,
+    shared: np.ndarray | None = None,
+) -> tuple[np.ndarray, dict]:
     """(P, P) covariance A^-1 J^T W Sigma W J A^-1 of the parameters under the pair-error model
     (`variance_components`; arguments as there). Symmetric positive semi-definite; NaN rows and columns
     for parameters the pairs do not fix (those in the null space of A = J^T W J + prior)."""
@@ -125,8 +147,7 @@ def pair_covariance(jac: np.ndarray, e: np.ndarray, w: np.ndarray, spread: np.nd
         if not keep.any():
             return out, {}
         jk, pk = jac[:, keep], prior_prec[keep]
-        sigma, parts = variance_components(jk, np.asarray(e, dtype=np.float64), w, spread, i, j, n_nodes, pk,
-                                           shared)
+        sigma, parts = variance_components(jk, np.asarray(e, dtype=np.float64), w, spread, i, j, n_nodes, pk, shared)
         a_inv = np.linalg.inv((jk.T * w) @ jk + np.diag(pk))
     except (np.linalg.LinAlgError, ValueError):
         return out, {}
@@ -137,8 +158,13 @@ def pair_covariance(jac: np.ndarray, e: np.ndarray, w: np.ndarray, spread: np.nd
     return out, parts
 
 
-def position_covariance(range_m: np.ndarray, position: np.ndarray, anchors: tuple[int, int, int],
-                        offset: bool = False, robust_scale: float | None = None) -> np.ndarray:
+def position_covariance(
+    range_m: np.ndarray,
+    position: np.ndarray,
+    anchors: tuple[int, int, int],
+    offset: bool = False,
+    robust_scale: float | None = None,
+) -> np.ndarray:
     """(N, D, D) covariance of a mesh estimate `position` (frame `anchors`) under per-pair systematic
     errors. Without a fitted range offset (`offset=False`) a common offset of all ranges is one more
     shared pattern (a column of ones) whose amplitude the residuals estimate: the estimator carries its
@@ -195,16 +221,15 @@ def position_covariance(range_m: np.ndarray, position: np.ndarray, anchors: tupl
         shared = np.column_stack([spread, np.ones(i.size)])
     cov, _ = pair_covariance(jac, e, w, spread, i, j, n, np.zeros(jac.shape[1]), shared)
     cov_all = np.zeros((n * d, n * d))
-    cov_all[np.ix_(free, free)] = cov[:free.size, :free.size]
+    cov_all[np.ix_(free, free)] = cov[: free.size, : free.size]
     for k in np.flatnonzero(placed):
-        out[k] = cov_all[k * d:(k + 1) * d, k * d:(k + 1) * d]
+        out[k] = cov_all[k * d : (k + 1) * d, k * d : (k + 1) * d]
         dev = x[k] - x_fit[k]
         out[k] = out[k] + np.outer(dev, dev)
     return 0.5 * (out + np.swapaxes(out, 1, 2))
 
 
-def polish(x: np.ndarray, i: np.ndarray, j: np.ndarray, z: np.ndarray, free: np.ndarray,
-           scale: float) -> np.ndarray:
+def polish(x: np.ndarray, i: np.ndarray, j: np.ndarray, z: np.ndarray, free: np.ndarray, scale: float) -> np.ndarray:
     """`x` (N, D) with its `free` coordinates (flat indices) fitted to the pair ranges z (pairs i, j)
     by Cauchy-robust least squares of scale `scale` [m] (scipy `least_squares`, trust region), from
     `x`; the other coordinates are kept. Returns `x` unchanged where the fit fails."""
@@ -217,8 +242,7 @@ def polish(x: np.ndarray, i: np.ndarray, j: np.ndarray, z: np.ndarray, free: np.
         return np.linalg.norm(y[i] - y[j], axis=1) - z
 
     try:
-        sol = least_squares(res, x.ravel()[free], loss="cauchy", f_scale=scale, method="trf",
-                            max_nfev=200)
+        sol = least_squares(res, x.ravel()[free], loss="cauchy", f_scale=scale, method="trf", max_nfev=200)
     except (ValueError, np.linalg.LinAlgError):
         return x
     if not np.isfinite(sol.x).all():

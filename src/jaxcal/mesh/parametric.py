@@ -17,9 +17,7 @@ from jaxcal.mesh.pgp import PGPParams, run_pgp
 __all__ = ["calibrate", "PGPParams"]
 
 
-def calibrate(
-    dataset: MeshDataset, params=None, config: str | None = None, progress=None
-) -> Result:
+def calibrate(dataset: MeshDataset, params=None, config: str | None = None, progress=None) -> Result:
     """`--method parametric`: the grid filter with eq. (9) point-estimate likelihoods; nodes the ranges
     cannot fix in the frame (`identify.py`) are NaN rows, named in one warning line.
 

@@ -180,9 +180,7 @@ LIKELIHOODS = ("window", "direct", "sparse", "dense")
 RANGE_MODELS = ("gaussian", "mixture")
 # PGPParams fields that are arrays in `FilterParams` (sweeps and tuning change them without
 # recompiling), in FilterParams' order
-NUMERIC = (
-    "tau", "r_est", "sigma_r", "v", "sigma_v", "alpha", "p_out", "nlos_weight", "nlos_mean_m"
-)
+NUMERIC = ("tau", "r_est", "sigma_r", "v", "sigma_v", "alpha", "p_out", "nlos_weight", "nlos_mean_m")
 
 
 def validate_params(p: PGPParams) -> None:
@@ -232,9 +230,7 @@ def validate_params(p: PGPParams) -> None:
         f"update_order: jacobi or gauss-seidel; got {p.update_order!r}",
     )
     if p.extent_m / p.cell_m > 2000:
-        raise JaxcalError(
-            f"parameter cell_m: grid of {2 * p.extent_m / p.cell_m:.0f} cells a side is too large"
-        )
+        raise JaxcalError(f"parameter cell_m: grid of {2 * p.extent_m / p.cell_m:.0f} cells a side is too large")
 
 
 class FilterConfig(eqx.Module):
@@ -373,9 +369,7 @@ def _localised(heard: Bool[Array, "n n"], need: Float[Array, " n"]) -> Bool[Arra
     return jnp.sum(heard, axis=1) >= need
 
 
-def _hypotheses(
-    cfg: FilterConfig, prm: FilterParams, logp: Float[Array, "n c"], cells: Float[Array, "c 2"]
-):
+def _hypotheses(cfg: FilterConfig, prm: FilterParams, logp: Float[Array, "n c"], cells: Float[Array, "c 2"]):
     """(N, H, 2), (N, H), (N,) hypotheses of all nodes: eq. (10), or eq. (9) for parametric.
 
     `cells` is (C, 2) shared by all nodes or (N, C, 2) per node (windows)."""
@@ -387,9 +381,7 @@ def _hypotheses(
         sig = jnp.broadcast_to(prm.sigma_r, logp.shape[:1])
         return pos, lw, sig
     if cfg.mode == "pgp":
-        pos, lw = jax.vmap(G.top_hypotheses, in_axes=(0, ca, None, None))(
-            logp, cells, cfg.n_hyp, prm.tau
-        )
+        pos, lw = jax.vmap(G.top_hypotheses, in_axes=(0, ca, None, None))(logp, cells, cfg.n_hyp, prm.tau)
         sig = jnp.broadcast_to(prm.sigma_r, logp.shape[:1])
         return pos, lw, sig
     est = jax.vmap(G.window_estimate, in_axes=(0, ca, None))(logp, cells, prm.r_est)
@@ -494,9 +486,9 @@ def _window_epoch(
         )
 
     if cfg.mode == "pgp":  # hypotheses are grid cells (eq. 10)
-        ll, ring_ok = jax.vmap(
-            F.ring_loglik, in_axes=(0, None, None, None, None, None, 0, 0, None, None)
-        )(org, w, grid, hyps[0], hyps[1], hyps[2], z, use, prm.p_out, nlos)
+        ll, ring_ok = jax.vmap(F.ring_loglik, in_axes=(0, None, None, None, None, None, 0, 0, None, None))(
+            org, w, grid, hyps[0], hyps[1], hyps[2], z, use, prm.p_out, nlos
+        )
         ll = jax.lax.cond(jnp.all(ring_ok), lambda: ll, _remat(cfg, direct_ll))
     else:  # eq. (9): off-grid estimates
         ll = direct_ll()
@@ -522,9 +514,7 @@ def _window_epoch(
             small = jnp.asarray(jnp.inf, dtype)
         return out, pb - lse, ev, raw, small - lse
 
-    win, bound, ev, raw, small = jax.vmap(node)(
-        vals, src_idx, org_b, org, cells, prior, ll, inp.mask
-    )
+    win, bound, ev, raw, small = jax.vmap(node)(vals, src_idx, org_b, org, cells, prior, ll, inp.mask)
     # a1 on its row: eq. (7)-(8) from its top_k cells, eq. (11) with a0's hypothesis
     vals, idx = G.top_k(st.row, cfg.top_k)
     d = G.safe_norm(row_cells[None, :, :] - row_cells[idx][:, None, :])
@@ -619,9 +609,7 @@ def _scan(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st0: FilterSt
                 lambda a: _node_update(cfg, prm, cells, a[0], a[1], a[2], hyps, a[3], a[4], step_m),
                 args,
             )
-        return jax.vmap(
-            lambda *a: _node_update(cfg, prm, cells, a[0], a[1], a[2], hyps, a[3], a[4], step_m)
-        )(*args)
+        return jax.vmap(lambda *a: _node_update(cfg, prm, cells, a[0], a[1], a[2], hyps, a[3], a[4], step_m))(*args)
 
     def full_epoch(st: FilterState, z, step_m):
         """The direct evaluation on every cell; re-centres the windows when there are any."""
@@ -641,9 +629,7 @@ def _scan(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st0: FilterSt
                 lp, heard, hyps = carry
                 loc = _localised(heard, inp.need)
                 use_i = inp.allowed[i] & jnp.isfinite(z[i]) & loc
-                new, ev_i = _node_update(
-                    cfg, prm, cells, lp[i], mask[i], loc[i], hyps, z[i], use_i, step_m
-                )
+                new, ev_i = _node_update(cfg, prm, cells, lp[i], mask[i], loc[i], hyps, z[i], use_i, step_m)
                 lp = lp.at[i].set(new)
                 heard = heard.at[i].set(heard[i] | use_i)
                 h1 = _hypotheses(cfg, prm, new[None], cells)
@@ -742,9 +728,7 @@ def _scan(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st0: FilterSt
             hit = inp.snap_at == k
             snaps = jax.lax.cond(
                 jnp.any(hit),
-                lambda: jnp.where(
-                    hit[:, None, None, None], _full_logpost(cfg, new)[None], st.snaps
-                ),
+                lambda: jnp.where(hit[:, None, None, None], _full_logpost(cfg, new)[None], st.snaps),
                 lambda: st.snaps,
             )
             new = dataclasses.replace(new, snaps=snaps)
@@ -755,9 +739,7 @@ def _scan(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st0: FilterSt
     return jax.lax.scan(body, st0, (inp.z, inp.dt, k0 + jnp.arange(k)))
 
 
-def _filter(
-    cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, logpost0: Float[Array, "n nx ny"]
-):
+def _filter(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, logpost0: Float[Array, "n nx ny"]):
     """The recursive filter: `lax.scan` over epochs -> (final FilterState, per-epoch FilterOut).
 
     The final state's `logpost` holds the full-grid posteriors (windows placed on the grid)."""
@@ -771,9 +753,7 @@ per-epoch FilterOut); tuning and sweeps call it (also inside their own vmap / ji
 _scan_jit = eqx.filter_jit(_scan)
 
 
-def _scan_windows(
-    cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st: FilterState, valid, k0
-):
+def _scan_windows(cfg: FilterConfig, prm: FilterParams, inp: FilterInputs, st: FilterState, valid, k0):
     """Windowed epochs only, without the full grid in the carry (its copies cost O(cells) per
     epoch). Stops (state frozen) at the first epoch that is not `valid` or cannot run on the
     windows; returns (state, FilterOut, epochs done). `st.logpost` is not read."""
@@ -822,9 +802,7 @@ def _scan_windows(
         return (new, go), (FilterOut(est, raw, lm, ev, nf, go, go & ran_small), go)
 
     k = inp.z.shape[0]
-    (st, _), (out, done) = jax.lax.scan(
-        epoch, (st, jnp.asarray(True)), (inp.z, inp.dt, k0 + jnp.arange(k), valid)
-    )
+    (st, _), (out, done) = jax.lax.scan(epoch, (st, jnp.asarray(True)), (inp.z, inp.dt, k0 + jnp.arange(k), valid))
     return st, out, jnp.sum(done)
 
 
@@ -858,9 +836,7 @@ def run_chunked(
         if progress is not None:
             return run_segmented(cfg, prm, inp, logpost0, progress=progress)
         return run_filter(cfg, prm, inp, logpost0)
-    st, out = advance_chunked(
-        cfg, prm, inp, init_state(cfg, logpost0), 0, None, chunk, full_chunk, progress
-    )
+    st, out = advance_chunked(cfg, prm, inp, init_state(cfg, logpost0), 0, None, chunk, full_chunk, progress)
     return full_state(cfg, st), out
 
 
@@ -911,9 +887,7 @@ def advance_chunked(
             valid = jnp.arange(chunk) < m
             full = st.logpost
             small = dataclasses.replace(st, logpost=jnp.zeros((n, 1, 1), full.dtype))
-            st2, out, done = _scan_windows_jit(
-                cfg, prm, part(k, k + m, chunk - m), small, valid, jnp.asarray(k)
-            )
+            st2, out, done = _scan_windows_jit(cfg, prm, part(k, k + m, chunk - m), small, valid, jnp.asarray(k))
             done = int(done)
             if done:
                 st = dataclasses.replace(st2, logpost=full)
@@ -1001,12 +975,7 @@ def _setup(params: PGPParams, grid: G.Grid, n: int, mode: str, snaps: np.ndarray
         window_small=window_small,
         range_model=params.range_model,
     )
-    prm = FilterParams(
-        *(
-            jnp.asarray(getattr(params, f), ftype)
-            for f in NUMERIC
-        )
-    )
+    prm = FilterParams(*(jnp.asarray(getattr(params, f), ftype) for f in NUMERIC))
     inp = FilterInputs(
         z=jnp.asarray(z, ftype),
         dt=jnp.asarray(dt, ftype),
@@ -1103,9 +1072,7 @@ def start(
         raise JaxcalError(f"radius_m must be a positive number, got {radius_m!r}")
     grid = G.make_grid(radius, params.cell_m)
     n = int(n_nodes)
-    cfg, prm, inp, lp0 = _setup(
-        params, grid, n, mode, np.zeros(0), np.zeros((0, n, n)), np.zeros(0)
-    )
+    cfg, prm, inp, lp0 = _setup(params, grid, n, mode, np.zeros(0), np.zeros((0, n, n)), np.zeros(0))
     return PGPStream(cfg, prm, inp, init_state(cfg, lp0), tuple(int(i) for i in order), 0)
 
 
@@ -1128,9 +1095,7 @@ def advance(stream: PGPStream, ranges: np.ndarray, dt: np.ndarray) -> tuple[PGPS
     d = np.asarray(dt, dtype=np.float64)
     n = len(stream.order)
     if r.ndim != 3 or r.shape[1:] != (n, n) or d.shape != r.shape[:1]:
-        raise JaxcalError(
-            f"advance: need ranges (k, {n}, {n}) and dt (k,), got {r.shape}, {d.shape}"
-        )
+        raise JaxcalError(f"advance: need ranges (k, {n}, {n}) and dt (k,), got {r.shape}, {d.shape}")
     order = np.asarray(stream.order)
     z = symmetric_ranges(r)[:, order][:, :, order]
     dtype = stream.state.logpost.dtype
@@ -1138,9 +1103,7 @@ def advance(stream: PGPStream, ranges: np.ndarray, dt: np.ndarray) -> tuple[PGPS
     k0 = jnp.asarray(stream.epochs, jnp.int32)  # an array: no recompilation per chunk
     st, out = _scan_jit(stream.cfg, stream.prm, inp, stream.state, k0)
     est = np.asarray(out.estimate, dtype=np.float64)[:, np.argsort(order)]
-    new = PGPStream(
-        stream.cfg, stream.prm, stream.inp, st, stream.order, stream.epochs + r.shape[0]
-    )
+    new = PGPStream(stream.cfg, stream.prm, stream.inp, st, stream.order, stream.epochs + r.shape[0])
     return new, est
 
 
@@ -1261,8 +1224,7 @@ def _to_config_frame(final, cov, track, anchors):
     out = to_frame_track(final[None], a0, a1, a2)[0]
     if np.isfinite(out).all(axis=1).any():
         c = np.where(np.isfinite(cov), cov, 0.0)
-        cov = np.where(np.isfinite(out).all(axis=1)[:, None, None], frame_covariance(final, c, a0, a1, a2),
-                       np.nan)
+        cov = np.where(np.isfinite(out).all(axis=1)[:, None, None], frame_covariance(final, c, a0, a1, a2), np.nan)
     else:
         cov = np.full_like(cov, np.nan)
     return out, cov, track
@@ -1277,9 +1239,7 @@ def _software() -> str:
         return "jaxcal"
 
 
-def calibrate(
-    dataset: MeshDataset, params=None, config: str | None = None, progress=None
-) -> Result:
+def calibrate(dataset: MeshDataset, params=None, config: str | None = None, progress=None) -> Result:
     """`--method pgp`: the grid-based Bayesian filter with hypothesis likelihoods (eq. 3-14); nodes the
     ranges cannot fix in the frame (`identify.py`) are NaN rows, named in one warning line.
 
@@ -1305,8 +1265,9 @@ def with_pair_covariance(res: Result, range_m: np.ndarray) -> Result:
     anchors = res.frame_anchors()
     if res.covariance is None or anchors is None or res.position.shape[1] != 2:
         return res
-    pc = position_covariance(range_m, res.position, anchors, offset=False,
-                             robust_scale=float(res.params.get("sigma_r", 0.3)))
+    pc = position_covariance(
+        range_m, res.position, anchors, offset=False, robust_scale=float(res.params.get("sigma_r", 0.3))
+    )
     cov = np.array(res.covariance, dtype=np.float64, copy=True)
     for k in range(cov.shape[0]):
         if np.isfinite(pc[k]).all() and np.isfinite(cov[k]).all():

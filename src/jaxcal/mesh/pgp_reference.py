@@ -80,9 +80,7 @@ def run_reference(
                 x, y = axis[ix], axis[iy]
                 if i == 0 and not (ix == n_half and iy == n_half):
                     continue
-                if i == 1 and not (
-                    iy == n_half and ix >= n_half
-                ):  # the 1-D histogram bins h = 0..d_max
+                if i == 1 and not (iy == n_half and ix >= n_half):  # the 1-D histogram bins h = 0..d_max
                     continue
                 if i == 2 and iy < n_half:
                     continue

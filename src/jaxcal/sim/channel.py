@@ -52,9 +52,7 @@ class ChannelModel(eqx.Module):
     outlier_max: float = 25.0
 
 
-def sample_range_errors(
-    rng: np.random.Generator, los: np.ndarray, model: ChannelModel | None = None
-) -> np.ndarray:
+def sample_range_errors(rng: np.random.Generator, los: np.ndarray, model: ChannelModel | None = None) -> np.ndarray:
     """Ranging errors [m] (same shape as `los`, a bool array: True = LOS) to add to true distances.
 
     Args:

@@ -28,8 +28,9 @@ __all__ = ["FAMILIES", "family_mesh"]
 FAMILIES = ("a0a1", "a0a2", "a1a2", "late", "bridge", "leaf")
 
 
-def family_mesh(kind: str, seed: int, n_nodes: int = 12, n_epochs: int = 400, hall=(30.0, 20.0),
-                never_share: float = 0.04) -> MeshDataset:
+def family_mesh(
+    kind: str, seed: int, n_nodes: int = 12, n_epochs: int = 400, hall=(30.0, 20.0), never_share: float = 0.04
+) -> MeshDataset:
     """A random mesh of family `kind` (module docstring).
 
     Args:
@@ -63,9 +64,14 @@ def family_mesh(kind: str, seed: int, n_nodes: int = 12, n_epochs: int = 400, ha
         never.discard((keep, n - 1))
     w, h = hall
     sc = MeshScenario(
-        name=f"family-{kind}-{seed}", hall=(w, h), node_ids=tuple(f"n{i}" for i in range(n)),
-        walls=(((0.5 * w, 0.0), (0.5 * w, 0.45 * h)),), n_epochs=n_epochs,
-        never=tuple(sorted(never)), configs=(("default", (0, 1, 2)),), min_separation=2.0,
+        name=f"family-{kind}-{seed}",
+        hall=(w, h),
+        node_ids=tuple(f"n{i}" for i in range(n)),
+        walls=(((0.5 * w, 0.0), (0.5 * w, 0.45 * h)),),
+        n_epochs=n_epochs,
+        never=tuple(sorted(never)),
+        configs=(("default", (0, 1, 2)),),
+        min_separation=2.0,
     )
     ds = simulate(sc, seed=seed)
     if kind == "late":

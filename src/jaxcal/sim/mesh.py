@@ -132,8 +132,7 @@ SCENARIOS: dict[str, MeshScenario] = {
 def _orient(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Sign of the 2-D cross product (b - a) x (c - a), broadcast over leading axes."""
     return np.sign(
-        (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1])
-        - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0])
+        (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0])
     )
 
 
@@ -185,9 +184,7 @@ def simulate(scenario: str | MeshScenario = "torgau", seed: int = 0, **overrides
     """
     if isinstance(scenario, str):
         if scenario not in SCENARIOS:
-            raise JaxcalError(
-                f"unknown mesh scenario {scenario!r} (known: {', '.join(sorted(SCENARIOS))})"
-            )
+            raise JaxcalError(f"unknown mesh scenario {scenario!r} (known: {', '.join(sorted(SCENARIOS))})")
         sc = SCENARIOS[scenario]
     else:
         sc = scenario
@@ -195,9 +192,7 @@ def simulate(scenario: str | MeshScenario = "torgau", seed: int = 0, **overrides
         known = {f.name for f in dataclasses.fields(MeshScenario)}
         bad = sorted(set(overrides) - known)
         if bad:
-            raise JaxcalError(
-                f"unknown scenario field(s) {', '.join(bad)} (known: {', '.join(sorted(known))})"
-            )
+            raise JaxcalError(f"unknown scenario field(s) {', '.join(bad)} (known: {', '.join(sorted(known))})")
         sc = dataclasses.replace(sc, **overrides)
     n = len(sc.node_ids)
     if sc.n_epochs < 1 or sc.rate_hz <= 0:

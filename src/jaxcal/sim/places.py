@@ -199,9 +199,7 @@ def simulate_places(
     else:
         anchors = np.asarray(anchors, dtype=np.float64)
         if anchors.ndim != 2 or anchors.shape[1] != 3 or not np.all(np.isfinite(anchors)):
-            raise InputError(
-                f"anchors: expected finite (A, 3) positions, got shape {anchors.shape}"
-            )
+            raise InputError(f"anchors: expected finite (A, 3) positions, got shape {anchors.shape}")
 
     # Query run: random places along the route, shifted along and across the aisle.
     pick = np.sort(rng.choice(k, size=n_queries, replace=n_queries > k))
@@ -230,9 +228,7 @@ def simulate_places(
     )
 
 
-def perturb_anchors(
-    rng: np.random.Generator, truth: np.ndarray, error_m: float
-) -> tuple[np.ndarray, np.ndarray]:
+def perturb_anchors(rng: np.random.Generator, truth: np.ndarray, error_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Anchors 'calibrated' with a controlled error: truth + N(0, (error_m^2 / D) I) per anchor.
 
     Args:

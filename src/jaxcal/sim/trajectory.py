@@ -121,9 +121,7 @@ def simulate(
         TrajectoryDataset with anchor truth, per-range LOS labels and one tag.
     """
     if scenario not in SCENARIOS:
-        raise InputError(
-            f"unknown trajectory scenario {scenario!r} (known: {', '.join(SCENARIOS)})"
-        )
+        raise InputError(f"unknown trajectory scenario {scenario!r} (known: {', '.join(SCENARIOS)})")
     if drift < 0:
         raise InputError(f"drift must be >= 0, got {drift}")
     scale, n_anchors = (1.0, 10) if scenario == "campus" else (0.1, 3)
@@ -136,9 +134,7 @@ def simulate(
     z = _terrain(xy, scale)
     pos_true = np.column_stack([xy, z])
     heading = np.unwrap(np.arctan2(*np.gradient(xy, axis=0)[:, ::-1].T))
-    quat = np.column_stack(
-        [np.zeros_like(heading), np.zeros_like(heading), np.sin(heading / 2), np.cos(heading / 2)]
-    )
+    quat = np.column_stack([np.zeros_like(heading), np.zeros_like(heading), np.sin(heading / 2), np.cos(heading / 2)])
     lever = np.array([[0.5, 0.0, 1.8]]) * (1.0 if scale == 1.0 else 0.5)
 
     # Anchors: beside roads at distinct places along the route, offset 4-8 m sideways, 3-6 m high.
@@ -146,9 +142,7 @@ def simulate(
     side = gen.choice([-1.0, 1.0], n_anchors) * gen.uniform(4.0, 8.0, n_anchors) * max(scale, 0.25)
     normal = np.column_stack([-np.sin(heading[idx]), np.cos(heading[idx])])
     a_xy = xy[idx] + side[:, None] * normal
-    anchors = np.column_stack(
-        [a_xy, _terrain(a_xy, scale) + gen.uniform(3.0, 6.0, n_anchors) * max(scale, 0.5)]
-    )
+    anchors = np.column_stack([a_xy, _terrain(a_xy, scale) + gen.uniform(3.0, 6.0, n_anchors) * max(scale, 0.5)])
 
     # Ranging: every anchor at range_rate_hz, tag position from the true pose.
     rt = np.arange(0.0, t[-1], 1.0 / range_rate_hz) + 0.5 / range_rate_hz * gen.random()
@@ -157,9 +151,7 @@ def simulate(
     h_rt = np.interp(rt, t, heading)
     c, s = np.cos(h_rt), np.sin(h_rt)
     lv = lever[0]
-    tag = p_rt + np.column_stack(
-        [c * lv[0] - s * lv[1], s * lv[0] + c * lv[1], np.full_like(c, lv[2])]
-    )
+    tag = p_rt + np.column_stack([c * lv[0] - s * lv[1], s * lv[0] + c * lv[1], np.full_like(c, lv[2])])
     r_idx = np.repeat(np.arange(rt.size), n_anchors)
     a_idx = np.tile(np.arange(n_anchors), rt.size)
     dist = np.linalg.norm(tag[r_idx] - anchors[a_idx], axis=1)

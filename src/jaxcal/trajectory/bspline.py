@@ -47,10 +47,7 @@ def blending_matrix(order: int) -> np.ndarray:
     m = np.zeros((k, k))
     for j in range(k):  # control point
         for n in range(k):  # power of u
-            s = sum(
-                (-1) ** (q - j) * math.comb(k, q - j) * (k - 1 - q) ** (k - 1 - n)
-                for q in range(j, k)
-            )
+            s = sum((-1) ** (q - j) * math.comb(k, q - j) * (k - 1 - q) ** (k - 1 - n) for q in range(j, k))
             m[j, n] = math.comb(k - 1, n) * s / math.factorial(k - 1)
     return m
 

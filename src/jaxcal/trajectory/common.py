@@ -101,9 +101,7 @@ def multilaterate(
     x3, c3 = _solve(jnp.concatenate([-2.0 * q, ones[:, None]], axis=1), rhs, mask)
     est3, cov3 = x3[:3], c3[:3, :3]
     # Planar: unknowns (a_x, a_y, c'), height from c' - |a_xy|^2.
-    x2, c2 = _solve(
-        jnp.stack([-2.0 * q[:, 0], -2.0 * q[:, 1], ones], axis=1), rhs + q[:, 2] ** 2, mask
-    )
+    x2, c2 = _solve(jnp.stack([-2.0 * q[:, 0], -2.0 * q[:, 1], ones], axis=1), rhs + q[:, 2] ** 2, mask)
     h2 = x2[2] - x2[0] ** 2 - x2[1] ** 2
     h = jnp.sqrt(jnp.maximum(h2, 1e-6))
     g = jnp.array([-x2[0] / h, -x2[1] / h, 0.5 / h])
@@ -117,13 +115,9 @@ def multilaterate(
     return est, cov
 
 
-def multilaterate_all(
-    pos, rng, mask, planar_tol_m: float = 0.3, side: float = 1.0, planar_ratio: float = 0.05
-):
+def multilaterate_all(pos, rng, mask, planar_tol_m: float = 0.3, side: float = 1.0, planar_ratio: float = 0.05):
     """`multilaterate` vmapped over anchors: (A, n, 3), (A, n), (A, n) -> (A, 3), (A, 3, 3)."""
-    return jax.vmap(lambda p, r, m: multilaterate(p, r, m, planar_tol_m, side, planar_ratio))(
-        pos, rng, mask
-    )
+    return jax.vmap(lambda p, r, m: multilaterate(p, r, m, planar_tol_m, side, planar_ratio))(pos, rng, mask)
 
 
 def is_planar(z_std, h_std, planar_tol_m: float, planar_ratio: float):
@@ -189,9 +183,7 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None) -> Result:
     cov = np.array(cov, dtype=float)
     cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
     count = np.asarray(groups.mask).sum(axis=1)
-    bad = (
-        (count < p.min_ranges) | ~np.isfinite(est).all(axis=1) | ~np.isfinite(cov).all(axis=(1, 2))
-    )
+    bad = (count < p.min_ranges) | ~np.isfinite(est).all(axis=1) | ~np.isfinite(cov).all(axis=(1, 2))
     est[bad] = np.nan
     cov[bad] = np.nan
     flat, zstd = unobservable_height(groups, est, p)
@@ -204,8 +196,11 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None) -> Result:
             "%s: the platform path is flat (tag height spread up to %.2f m) for %d anchor(s) (%s): the ranges "
             "do not fix their height; left NaN, horizontal kept; survey the heights or record a path with "
             "height changes (or raise max_height_dop)",
-            method, float(np.nanmax(zstd[flat])), len(names),
-            ", ".join(names[:8]) + (", ..." if len(names) > 8 else ""))
+            method,
+            float(np.nanmax(zstd[flat])),
+            len(names),
+            ", ".join(names[:8]) + (", ..." if len(names) > 8 else ""),
+        )
     info = dict(info, unobservable_height=[dataset.anchor_ids[a] for a in np.flatnonzero(flat)])
     params = as_dict(p)
     params.update({f"info_{k}": v for k, v in info.items()})

@@ -94,9 +94,7 @@ class KeyframeDB(eqx.Module):
         if pos.ndim != 2 or pos.shape[1] not in (2, 3):
             raise InputError(f"keyframe positions: expected shape (K, 2|3), got {tuple(pos.shape)}")
         if desc.ndim != 2 or desc.shape[0] != pos.shape[0] or desc.shape[1] < 1:
-            raise InputError(
-                f"keyframe descriptors: expected shape ({pos.shape[0]}, F), got {tuple(desc.shape)}"
-            )
+            raise InputError(f"keyframe descriptors: expected shape ({pos.shape[0]}, F), got {tuple(desc.shape)}")
         if pos.shape[0] < 1:
             raise InputError("keyframe database is empty")
         if not (bool(jnp.all(jnp.isfinite(pos))) and bool(jnp.all(jnp.isfinite(desc)))):
@@ -106,9 +104,7 @@ class KeyframeDB(eqx.Module):
         if metric == "cosine":
             norm = jnp.linalg.norm(desc, axis=1, keepdims=True)
             desc = desc / jnp.where(norm > 0, norm, 1.0)
-        return cls(
-            position=pos, descriptor=desc, sq_norm=jnp.sum(desc * desc, axis=1), metric=metric
-        )
+        return cls(position=pos, descriptor=desc, sq_norm=jnp.sum(desc * desc, axis=1), metric=metric)
 
     @property
     def n_keyframes(self) -> int:
@@ -146,8 +142,7 @@ class Anchors(eqx.Module):
             cov = np.asarray(covariance, dtype=np.float64)
             if cov.shape != (pos.shape[0], pos.shape[1], pos.shape[1]):
                 raise InputError(
-                    f"anchor covariances: expected shape {(pos.shape[0],) + pos.shape[1:] * 2}, "
-                    f"got {cov.shape}"
+                    f"anchor covariances: expected shape {(pos.shape[0],) + pos.shape[1:] * 2}, got {cov.shape}"
                 )
             ok = np.all(np.isfinite(cov), axis=(1, 2))
             safe = np.where(ok[:, None, None], cov, 0.0)
@@ -207,9 +202,7 @@ class Candidates(eqx.Module):
 
 def _check_dims(db: KeyframeDB, anchors: Anchors) -> None:
     if db.position.shape[1] != anchors.position.shape[1]:
-        raise InputError(
-            f"keyframes are {db.position.shape[1]}-D but anchors are {anchors.position.shape[1]}-D"
-        )
+        raise InputError(f"keyframes are {db.position.shape[1]}-D but anchors are {anchors.position.shape[1]}-D")
 
 
 def _distances(points: Float[Array, "N D"], anchors: Float[Array, "A D"]) -> Float[Array, "N A"]:
@@ -223,17 +216,13 @@ def _usable(anchors: Anchors, range_m: Float[Array, " A"]) -> Bool[Array, " A"]:
     return pos_ok & jnp.isfinite(range_m) & (range_m >= 0)
 
 
-def zone_halfwidth(
-    anchors: Anchors, range_m: Float[Array, " A"], params: GateParams
-) -> Float[Array, " A"]:
+def zone_halfwidth(anchors: Anchors, range_m: Float[Array, " A"], params: GateParams) -> Float[Array, " A"]:
     """Half-width w_a [m] of each anchor's range zone for measured ranges `range_m` (A,) [m]."""
     r = jnp.where(jnp.isfinite(range_m), range_m, 0.0)
     return params.delta_m + params.k_sigma * anchors.sigma + params.range_rel * r
 
 
-def admissible(
-    db: KeyframeDB, anchors: Anchors, range_m: Float[Array, " A"], params: GateParams
-) -> Bool[Array, " K"]:
+def admissible(db: KeyframeDB, anchors: Anchors, range_m: Float[Array, " A"], params: GateParams) -> Bool[Array, " K"]:
     """Zone mask of one query: keyframes inside every heard anchor's range zone.
 
     Args:
@@ -312,9 +301,7 @@ def _pivot_slice(index: ZoneIndex, anchors: Anchors, range_m, params):
     return lo, hi
 
 
-def zone_counts(
-    index: ZoneIndex, anchors: Anchors, range_m: Float[Array, " A"], params: GateParams
-):
+def zone_counts(index: ZoneIndex, anchors: Anchors, range_m: Float[Array, " A"], params: GateParams):
     """Size of the smallest (pivot) zone slice of one query: the capacity `rank_indexed` needs."""
     lo, hi = _pivot_slice(index, anchors, range_m, params)
     return jnp.min(hi - lo)
@@ -432,12 +419,9 @@ def _pow2(n: int) -> int:
 def _check_batch(db: KeyframeDB, anchors: Anchors, descriptors, ranges, top_k: int) -> None:
     if descriptors.ndim != 2 or descriptors.shape[1] != db.descriptor.shape[1]:
         raise InputError(
-            f"query descriptors: expected shape (Q, {db.descriptor.shape[1]}), "
-            f"got {tuple(descriptors.shape)}"
+            f"query descriptors: expected shape (Q, {db.descriptor.shape[1]}), got {tuple(descriptors.shape)}"
         )
-    if ranges is not None and (
-        ranges.ndim != 2 or ranges.shape != (descriptors.shape[0], anchors.position.shape[0])
-    ):
+    if ranges is not None and (ranges.ndim != 2 or ranges.shape != (descriptors.shape[0], anchors.position.shape[0])):
         raise InputError(
             f"query ranges: expected shape ({descriptors.shape[0]}, {anchors.position.shape[0]}), "
             f"got {tuple(ranges.shape)}"
@@ -451,8 +435,7 @@ def search_full(db: KeyframeDB, descriptors, top_k: int = 5) -> Candidates:
     descriptors = jnp.asarray(descriptors)
     if descriptors.ndim != 2 or descriptors.shape[1] != db.descriptor.shape[1]:
         raise InputError(
-            f"query descriptors: expected shape (Q, {db.descriptor.shape[1]}), "
-            f"got {tuple(descriptors.shape)}"
+            f"query descriptors: expected shape (Q, {db.descriptor.shape[1]}), got {tuple(descriptors.shape)}"
         )
     if not 1 <= top_k <= db.n_keyframes:
         raise InputError(f"top_k must be in [1, {db.n_keyframes}], got {top_k}")
@@ -508,9 +491,7 @@ def search(
         for start in range(0, sel.size, batch):
             part = sel[start : start + batch]
             padded = np.concatenate([part, np.full(batch - part.size, part[0])])
-            res = _indexed_batch(
-                db, index, anchors, ranges[padded], descriptors[padded], params, top_k, int(cap)
-            )
+            res = _indexed_batch(db, index, anchors, ranges[padded], descriptors[padded], params, top_k, int(cap))
             pending.append((part, res))
     for part, res in pending:
         n = part.size

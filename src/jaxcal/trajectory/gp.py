@@ -303,9 +303,7 @@ def _fit_hyper(x, y, mask, init: Hyper, nu: float, jitter: float, max_steps: int
 
     def loss(h, _):
         # The objective is scaled by 1/n so that the BFGS tolerances mean the same for any n.
-        return neg_log_marginal_likelihood(h, x, y, mask, nu, jitter) / jnp.maximum(
-            jnp.sum(mask), 1
-        )
+        return neg_log_marginal_likelihood(h, x, y, mask, nu, jitter) / jnp.maximum(jnp.sum(mask), 1)
 
     solver = optx.BFGS(rtol=1e-6, atol=1e-6)
     sol = optx.minimise(loss, solver, init, max_steps=max_steps, throw=False)
@@ -533,9 +531,7 @@ def _calibrate_all(x, r, mask, centre, half, planar, p: GPParams, n_rounds: int,
         init = Hyper(jnp.log(jnp.maximum(0.3 * ext, 1e-2)), jnp.log(var_y), jnp.log(0.01 * var_y))
         h, code = _fit_hyper(xc, yc, m, init, p.nu, p.jitter, p.max_steps)
         post = _posterior(h, xc, yc, m, mean, p.nu, p.jitter)
-        est, cov = search_anchor(
-            post, c0 - origin, h0, p.target, p.grid, p.top_k, p.shrink, n_rounds, grid_z
-        )
+        est, cov = search_anchor(post, c0 - origin, h0, p.target, p.grid, p.top_k, p.shrink, n_rounds, grid_z)
         pt = est
         mu, var = predict(post, pt[None], with_var=True)
         d_hat = from_target(mu[0], p.target)
@@ -547,9 +543,7 @@ def _calibrate_all(x, r, mask, centre, half, planar, p: GPParams, n_rounds: int,
         sd = jnp.minimum(sd, r_max)
         est = jnp.where(pl, est.at[2].set(est[2] + p.side * height), est)
         if p.search == "gradient":
-            est_g, cov_g, pt_g, cands = _gradient_candidates(
-                post, xc, m, p.target, p.top_k, pl, p.side
-            )
+            est_g, cov_g, pt_g, cands = _gradient_candidates(post, xc, m, p.target, p.top_k, pl, p.side)
             # The eikonal step is local (it trusts the GP's gradient at a few inputs); keep the
             # candidate, the cuboid answer included, most consistent with the whole range field.
             options = jnp.concatenate([est_g[None], est[None], cands])
@@ -588,9 +582,7 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
         raise JaxcalError(f"parameter mean: expected constant or anchor, got {p.mean!r}")
     matern(jnp.zeros(1), 1.0, 1.0, p.nu)  # validates nu
     if p.grid < 2 or p.top_k < 1 or p.top_k > p.grid**2 or not 0.0 < p.shrink < 1.0 or p.tol_m <= 0:
-        raise JaxcalError(
-            "parameters grid >= 2, 1 <= top_k <= grid^2, 0 < shrink < 1, tol_m > 0 required"
-        )
+        raise JaxcalError("parameters grid >= 2, 1 <= top_k <= grid^2, 0 < shrink < 1, tol_m > 0 required")
     groups, info = prepare_poses(dataset, p)
     pos = np.asarray(groups.position)
     rng_m = np.asarray(groups.range)
@@ -647,9 +639,7 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
                 half[a, 2] = 0.0
         half_prev = half
         if stage == 0:  # the same (static) number of rounds in every stage: one compilation
-            n_rounds = max(
-                1, int(math.ceil(math.log(half.max() / p.tol_m) / math.log(1.0 / p.shrink)))
-            )
+            n_rounds = max(1, int(math.ceil(math.log(half.max() / p.tol_m) / math.log(1.0 / p.shrink))))
         args = tuple(jnp.asarray(a) for a in (x, r, m, centre, half, planar))
         (est, cov, hyp, codes), codes, steps = S.retry_unconverged(
             lambda k, args=args, n_rounds=n_rounds: _fit_stage(

@@ -313,8 +313,9 @@ def calibrate_anchor_mean(dataset, p, groups, info, n: int, planar) -> Result:
             w = cauchy_weights(e)[np.searchsorted(valid, sel)]
             s[a, : sel.size] = 1.0 / np.maximum(w, 1e-6)
     shape = (a_n, n_blk, m_blk)
-    args = tuple(jnp.asarray(a) for a in (x.reshape(*shape, 3), r.reshape(shape), m.reshape(shape),
-                                           s.reshape(shape), a0, b0))
+    args = tuple(
+        jnp.asarray(a) for a in (x.reshape(*shape, 3), r.reshape(shape), m.reshape(shape), s.reshape(shape), a0, b0)
+    )
 
     def fit(steps):
         out = _fit_blocks(*args, eqx.tree_at(lambda q: q.max_steps, p, steps))
@@ -327,8 +328,7 @@ def calibrate_anchor_mean(dataset, p, groups, info, n: int, planar) -> Result:
     spread_nls = cone_spread(pos, rng_m, mask, a0)
     # Guard (module doc, step 3): f absorbed the geometry; the anchor no longer explains its ranges.
     fallback = seeded & (
-        ~np.isfinite(est).all(axis=1)
-        | ((p.max_spread_ratio > 0) & (spread_gp > p.max_spread_ratio * spread_nls))
+        ~np.isfinite(est).all(axis=1) | ((p.max_spread_ratio > 0) & (spread_gp > p.max_spread_ratio * spread_nls))
     )
     bounded = np.zeros(a_n, dtype=bool)
     for a in range(a_n):

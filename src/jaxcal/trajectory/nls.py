@@ -100,9 +100,7 @@ def solve_anchor(pos, rng, mask, init, p: NLSParams):
 
     def irls_round(carry, _):
         x, w = carry
-        sol = optx.least_squares(
-            residual, solver, x, args=jnp.sqrt(w), max_steps=p.max_steps, throw=False
-        )
+        sol = optx.least_squares(residual, solver, x, args=jnp.sqrt(w), max_steps=p.max_steps, throw=False)
         x = sol.value
         res = _dist(pos, x[:3]) + use_bias * x[3] - rng
         return (x, _weights(res, mask, p.loss, p.loss_scale_m, p.min_scale_m)), S.outcome(sol)
@@ -115,9 +113,7 @@ def solve_anchor(pos, rng, mask, init, p: NLSParams):
         jac = jac[:, :3]
     jtj = jac.T @ jac
     r = residual(x, sw)
-    dof = jnp.maximum(
-        jnp.sum(w) * jnp.sum(mask) / jnp.maximum(jnp.sum(w), 1e-12) - jac.shape[1], 1.0
-    )
+    dof = jnp.maximum(jnp.sum(w) * jnp.sum(mask) / jnp.maximum(jnp.sum(w), 1e-12) - jac.shape[1], 1.0)
     s2 = jnp.sum(r**2) / dof * jnp.sum(mask) / jnp.maximum(jnp.sum(w), 1e-12)
     cov = s2 * jnp.linalg.pinv(jtj)
     cov = robust_covariance(cov, jac, r, mask, p.n_clusters)

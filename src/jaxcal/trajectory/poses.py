@@ -109,9 +109,7 @@ def fit_poses(ds, order: int = 4, knot_dt_s: float = 0.0, max_gap_s: float = 0.0
     q = ds.pose_orientation
     if q is None:
         q = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (ds.pose_time.shape[0], 1))
-    return PoseModel(
-        spline, jnp.asarray(ds.pose_time), jnp.asarray(ds.pose_position), jnp.asarray(q)
-    )
+    return PoseModel(spline, jnp.asarray(ds.pose_time), jnp.asarray(ds.pose_position), jnp.asarray(q))
 
 
 def tag_positions(
@@ -180,9 +178,7 @@ def group_by_anchor(
     return AnchorRanges(jnp.asarray(pos), jnp.asarray(r), jnp.asarray(m))
 
 
-def _offset_objective(
-    model, lever_arm, range_time, range_tag, range_anchor, rng, n_anchors, n_per, offset
-):
+def _offset_objective(model, lever_arm, range_time, range_tag, range_anchor, rng, n_anchors, n_per, offset):
     p = tag_positions(model, lever_arm, range_time, range_tag, offset)
     valid = jnp.isfinite(p).all(axis=1) & jnp.isfinite(rng)
     # Fixed-size per-anchor gather (static n_per) so that the objective is one traced function.
@@ -228,9 +224,7 @@ def estimate_time_offset(
             idx = idx[np.linspace(0, idx.size - 1, max_per_anchor).round().astype(int)]
         sel.append(idx)
     sel = np.sort(np.concatenate(sel))
-    n_per = int(
-        max(1, max((np.sum(ds.range_anchor[sel] == a) for a in range(ds.n_anchors)), default=1))
-    )
+    n_per = int(max(1, max((np.sum(ds.range_anchor[sel] == a) for a in range(ds.n_anchors)), default=1)))
     args = (
         model,
         jnp.asarray(ds.lever_arm),
@@ -301,6 +295,4 @@ def prepare(
 
 def prepare_poses(dataset, p: TrajectoryParams) -> tuple[AnchorRanges, dict]:
     """`prepare` with the pose and clock settings of a trajectory method's parameters `p`."""
-    return prepare(
-        dataset, p.order, p.knot_dt_s, p.max_gap_s, p.time_offset_s, p.estimate_offset, p.max_offset_s
-    )
+    return prepare(dataset, p.order, p.knot_dt_s, p.max_gap_s, p.time_offset_s, p.estimate_offset, p.max_offset_s)

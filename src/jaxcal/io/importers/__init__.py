@@ -49,9 +49,7 @@ def import_recording(fmt: str, *sources: str | os.PathLike, name: str | None = N
         raise JaxcalError(f"unknown importer {fmt!r} (known: {', '.join(IMPORTERS)})")
     module, func, args = IMPORTERS[fmt]
     if len(sources) != len(args):
-        raise JaxcalError(
-            f"importer {fmt!r} takes {len(args)} source argument(s) {' '.join(args)}, got {len(sources)}"
-        )
+        raise JaxcalError(f"importer {fmt!r} takes {len(args)} source argument(s) {' '.join(args)}, got {len(sources)}")
     fn = getattr(importlib.import_module(f"jaxcal.io.importers.{module}"), func)
     import inspect
 

@@ -55,30 +55,43 @@ from jaxcal.data import TrajectoryDataset
 from jaxcal.errors import JaxcalError
 from jaxcal.io.importers._common import BadCell, Skipped, csv_rows, existing_file, finite, join_notes, num
 
-__all__ = ["import_cuhksz", "ANCHORS", "LEVER_ARMS", "ANCHOR_IDS", "TAG_IDS", "mocap_to_body_quaternion",
-           "parse_wallclock"]
+__all__ = [
+    "import_cuhksz",
+    "ANCHORS",
+    "LEVER_ARMS",
+    "ANCHOR_IDS",
+    "TAG_IDS",
+    "mocap_to_body_quaternion",
+    "parse_wallclock",
+]
 
 # Planar_Dataset/Dynamic/README.md: anchors in the global (mocap) frame [m]
-ANCHORS = np.array([
-    [-3.4203, 3.0053, 1.0442],
-    [0.0016, 3.0110, 1.0446],
-    [3.6056, 2.9795, 1.0463],
-    [3.6011, -0.0008, 1.0422],
-    [3.5674, -3.0087, 1.0443],
-    [-0.0072, -2.9652, 1.0444],
-    [-3.4673, -2.9587, 1.0445],
-    [-3.4858, -0.0098, 1.0457],
-])
+ANCHORS = np.array(
+    [
+        [-3.4203, 3.0053, 1.0442],
+        [0.0016, 3.0110, 1.0446],
+        [3.6056, 2.9795, 1.0463],
+        [3.6011, -0.0008, 1.0422],
+        [3.5674, -3.0087, 1.0443],
+        [-0.0072, -2.9652, 1.0444],
+        [-3.4673, -2.9587, 1.0445],
+        [-3.4858, -0.0098, 1.0457],
+    ]
+)
 # Planar_Dataset/Dynamic/README.md: tags in the local (trolley) frame [m]
-LEVER_ARMS = np.array([
-    [-0.0689, -0.1423, 0.0011],
-    [-0.0750, 0.1402, 0.0016],
-    [0.2034, 0.1451, -0.0008],
-])
+LEVER_ARMS = np.array(
+    [
+        [-0.0689, -0.1423, 0.0011],
+        [-0.0750, 0.1402, 0.0016],
+        [0.2034, 0.1451, -0.0008],
+    ]
+)
 ANCHOR_IDS = tuple(f"a{i}" for i in range(8))
 TAG_IDS = tuple(f"t{i}" for i in range(3))
-SOURCE = ("LIAS-CUHKSZ planar dataset (github.com/LIAS-CUHKSZ/Efficient-Pose-Estimation-via-UWB-measurements "
-          "@ cabd39232cb855d3c1160ed16692034f4d41a092, Planar_Dataset/Dynamic)")
+SOURCE = (
+    "LIAS-CUHKSZ planar dataset (github.com/LIAS-CUHKSZ/Efficient-Pose-Estimation-via-UWB-measurements "
+    "@ cabd39232cb855d3c1160ed16692034f4d41a092, Planar_Dataset/Dynamic)"
+)
 LICENSE = "MIT (Copyright (c) 2023 Haodong JIANG)"
 
 _DAY0 = _dt.date(1970, 1, 1)
@@ -176,8 +189,9 @@ def _read_mocap(p: Path):
     return np.asarray(t), np.asarray(pos), np.asarray(quat), skipped
 
 
-def import_cuhksz(uwb_csv: str | os.PathLike, mocap_csv: str | os.PathLike,
-                  name: str | None = None) -> TrajectoryDataset:
+def import_cuhksz(
+    uwb_csv: str | os.PathLike, mocap_csv: str | os.PathLike, name: str | None = None
+) -> TrajectoryDataset:
     """Read one CUHK-SZ dynamic run into a trajectory dataset.
 
     Args:

@@ -48,8 +48,10 @@ __all__ = ["import_dwm1001", "read_nodes_cfg", "MAX_RANGE_M", "MIN_FRAME_ANGLE_D
 
 MAX_RANGE_M = 1000.0
 MIN_FRAME_ANGLE_DEG = 20.0
-SOURCE = ("github.com/esauortiz/dwm1001_drivers @ 21ab15e7205d531ca0f5b14f6e0101087aa5c1e3, "
-          "autocalibration_datasets/uart; Ortiz et al., Sensors 2020, 20(19), 5613")
+SOURCE = (
+    "github.com/esauortiz/dwm1001_drivers @ 21ab15e7205d531ca0f5b14f6e0101087aa5c1e3, "
+    "autocalibration_datasets/uart; Ortiz et al., Sensors 2020, 20(19), 5613"
+)
 LICENSE = "none stated upstream (local use only; do not redistribute)"
 
 
@@ -72,8 +74,9 @@ def read_nodes_cfg(path: str | os.PathLike) -> tuple[list[str], np.ndarray | Non
         raise JaxcalError(f"{p}: not a valid yaml file ({' '.join(str(e).split())[:100]})") from None
     if not isinstance(cfg, dict):
         raise JaxcalError(f"{p}: expected a mapping with networkN entries")
-    nets = sorted((k for k in cfg if isinstance(k, str) and k.startswith("network") and k[7:].isdigit()),
-                  key=lambda k: int(k[7:]))
+    nets = sorted(
+        (k for k in cfg if isinstance(k, str) and k.startswith("network") and k[7:].isdigit()), key=lambda k: int(k[7:])
+    )
     if not nets:
         raise JaxcalError(f"{p}: no 'network0', 'network1', ... entries")
     ids, truth = [], []
@@ -82,8 +85,10 @@ def read_nodes_cfg(path: str | os.PathLike) -> tuple[list[str], np.ndarray | Non
         if not isinstance(d, dict):
             raise JaxcalError(f"{p}: '{net}' is not a mapping")
         gt = d.get("gt") or {}
-        keys = sorted((k for k in d if isinstance(k, str) and k.startswith("anchor") and k.endswith("_id")),
-                      key=lambda k: int(k[6:-3]) if k[6:-3].isdigit() else 1 << 30)
+        keys = sorted(
+            (k for k in d if isinstance(k, str) and k.startswith("anchor") and k.endswith("_id")),
+            key=lambda k: int(k[6:-3]) if k[6:-3].isdigit() else 1 << 30,
+        )
         for k in keys:
             ids.append(str(d[k]).strip())
             c = gt.get(k[:-3] + "_coordinates")
@@ -157,8 +162,9 @@ def _frame_configs(rng: np.ndarray) -> dict[str, tuple[int, int, int]]:
     return out
 
 
-def import_dwm1001(scenario_dir: str | os.PathLike, nodes_cfg: str | os.PathLike,
-                   name: str | None = None, force: bool = False) -> MeshDataset:
+def import_dwm1001(
+    scenario_dir: str | os.PathLike, nodes_cfg: str | os.PathLike, name: str | None = None, force: bool = False
+) -> MeshDataset:
     """Read one dwm1001-autocal scenario into a mesh dataset.
 
     Args:
@@ -227,8 +233,11 @@ def import_dwm1001(scenario_dir: str | os.PathLike, nodes_cfg: str | os.PathLike
     if extra:
         notes.append(f"file(s) of node(s) {', '.join(extra)} not in the layout ignored")
     if configs:
-        notes.append("configs: " + ", ".join(f"{c}={v}" for c, v in configs.items())
-                     + " (conf1 best connected, conf2 worst connected non-degenerate triangle)")
+        notes.append(
+            "configs: "
+            + ", ".join(f"{c}={v}" for c, v in configs.items())
+            + " (conf1 best connected, conf2 worst connected non-degenerate triangle)"
+        )
     return MeshDataset(
         name=name or f"dwm1001-{Path(nodes_cfg).stem}",
         node_ids=ids,

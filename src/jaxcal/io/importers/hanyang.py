@@ -33,8 +33,10 @@ from jaxcal.io.importers._common import BadCell, Skipped, csv_rows, existing_dir
 
 __all__ = ["import_hanyang", "los_label"]
 
-SOURCE = ("Hanyang University ADIP lab outdoor UWB dataset (github.com/cucudasluv/UWB-dataset "
-          "@ c12599812e556324eadc763e409ea8f51098dda6; Zenodo 10.5281/zenodo.15226105)")
+SOURCE = (
+    "Hanyang University ADIP lab outdoor UWB dataset (github.com/cucudasluv/UWB-dataset "
+    "@ c12599812e556324eadc763e409ea8f51098dda6; Zenodo 10.5281/zenodo.15226105)"
+)
 LICENSE = "Apache-2.0"
 _ANCHOR_FILE = re.compile(r"^A(\d+)\.csv$")
 _ANCHOR_COLS = ("field.stamp", "field.x", "field.y", "field.z", "field.distanceFromTag")
@@ -60,8 +62,11 @@ def _read_anchor(p: Path):
         try:
             if len(row) != len(cols):
                 raise BadCell("field.stamp", "", f"expected {len(cols)} fields, got {len(row)}")
-            t = int(row[ix["field.stamp"]].strip()) / 1e9 if row[ix["field.stamp"]].strip().isdigit() \
+            t = (
+                int(row[ix["field.stamp"]].strip()) / 1e9
+                if row[ix["field.stamp"]].strip().isdigit()
                 else finite(row[ix["field.stamp"]], "field.stamp") / 1e9
+            )
             xyz = [finite(row[ix[c]], c) for c in ("field.x", "field.y", "field.z")]
             r = finite(row[ix["field.distanceFromTag"]], "field.distanceFromTag")
             rx = num(row[ix["field.rssi"]], "field.rssi") if has_rssi else np.nan
@@ -120,8 +125,9 @@ def import_hanyang(run_dir: str | os.PathLike, name: str | None = None) -> Traje
         with `range_los` from the folder name and signal powers.
     """
     d = existing_dir(run_dir)
-    files = sorted((f for f in d.iterdir() if _ANCHOR_FILE.match(f.name)),
-                   key=lambda f: int(_ANCHOR_FILE.match(f.name).group(1)))
+    files = sorted(
+        (f for f in d.iterdir() if _ANCHOR_FILE.match(f.name)), key=lambda f: int(_ANCHOR_FILE.match(f.name).group(1))
+    )
     if not files:
         raise JaxcalError(f"{d}: no anchor file A<id>.csv")
     pt, ppos, sk_t = _read_trajectory(existing_file(d / "trajectory.csv"))

@@ -46,9 +46,11 @@ UWB_CSV = "data/processed/csv/uwb.csv"
 ANCHORS_CSV = "data/reference/csv/anchor_coordinates.csv"
 POINTS_CSV = "data/reference/csv/point_coordinates.csv"
 TAG_ID = "UWB2"
-SOURCE = ("HYMN dataset, TU Dresden ITVS (github.com/TUD-ITVS/HYMN-dataset @ 39fdafc; "
-          "Ammad et al., IEEE Data Descriptions 2026, doi:10.1109/IEEEDATA.2026.3691044; "
-          "Zenodo 10.5281/zenodo.17979434)")
+SOURCE = (
+    "HYMN dataset, TU Dresden ITVS (github.com/TUD-ITVS/HYMN-dataset @ 39fdafc; "
+    "Ammad et al., IEEE Data Descriptions 2026, doi:10.1109/IEEEDATA.2026.3691044; "
+    "Zenodo 10.5281/zenodo.17979434)"
+)
 LICENSE = "CC BY 4.0 (attribution: HYMN dataset, TU Dresden)"
 
 

@@ -36,8 +36,14 @@ __all__ = [
     "MAX_LINE",
 ]
 
-ERR_CODES = {0: "ok", 1: "unknown command or broken TLV frame", 2: "internal error", 3: "invalid parameter",
-             4: "busy", 5: "operation not permitted"}
+ERR_CODES = {
+    0: "ok",
+    1: "unknown command or broken TLV frame",
+    2: "internal error",
+    3: "invalid parameter",
+    4: "busy",
+    5: "operation not permitted",
+}
 _ITEMS = (0x41, 0x48, 0x49, 0x4E, 0x56, 0x5A)
 _TERMINAL = (0x48, 0x49, 0x4E, 0x56, 0x5A)
 MAX_LINE = 1024
@@ -97,8 +103,9 @@ def _decode_items(raw: bytes, self_id: str | None) -> Frame:
                 addr, dist, dqf = struct.unpack_from("<HIB", v, e)
                 p, pqf = _pos(v, e + 7)
                 aid = f"{addr:04X}"
-                anchors.append({"addr": addr, "id": aid, "dist": dist / 1000.0, "qf": dqf, "position": p,
-                                "pos_qf": pqf})
+                anchors.append(
+                    {"addr": addr, "id": aid, "dist": dist / 1000.0, "qf": dqf, "position": p, "pos_qf": pqf}
+                )
                 ranges.append(Range(me, aid, dist / 1000.0, math.nan, math.nan, "tag", "anchor"))
             fields["anchors"] = tuple(anchors)
             kind = "loc_get"
@@ -120,8 +127,15 @@ def _decode_items(raw: bytes, self_id: str | None) -> Frame:
             for k in range(v[0]):
                 e = 1 + 16 * k
                 aid, x, y, z, rssi, flags = struct.unpack_from("<HiiibB", v, e)
-                anchors.append({"id": f"{aid:04X}", "position": (x / 1000.0, y / 1000.0, z / 1000.0),
-                                "rssi": rssi, "seat": flags & 0x1F, "neighbor_network": bool(flags & 0x20)})
+                anchors.append(
+                    {
+                        "id": f"{aid:04X}",
+                        "position": (x / 1000.0, y / 1000.0, z / 1000.0),
+                        "rssi": rssi,
+                        "seat": flags & 0x1F,
+                        "neighbor_network": bool(flags & 0x20),
+                    }
+                )
             fields["anchor_list"] = tuple(anchors)
             kind = "anchor_list_get"
         elif t == 0x4E:
@@ -312,8 +326,13 @@ def _parse_lep(text: str):
     if len(parts) == 5 and _INT_RE.match(parts[4]):
         return {"position": _floats(parts[1:4]), "qf": int(parts[4])}
     if len(parts) == 8 and parts[1].isdigit() and _INT_RE.match(parts[6]):  # passive listener (SPEC: LOW)
-        return {"index": int(parts[1]), "tag": parts[2], "position": _floats(parts[3:6]), "qf": int(parts[6]),
-                "extra": parts[7]}
+        return {
+            "index": int(parts[1]),
+            "tag": parts[2],
+            "position": _floats(parts[3:6]),
+            "qf": int(parts[6]),
+            "extra": parts[7],
+        }
     raise FrameError("lep: expected POS,x,y,z,qf")
 
 

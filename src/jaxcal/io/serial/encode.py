@@ -42,36 +42,72 @@ def _var_frame(mark: int, head: bytes, blocks: bytes) -> bytes:
     return with_checksum(bytes([0x55, mark]) + struct.pack("<H", L) + head + blocks)
 
 
-def nodeframe3(role: int, ident: int, local_time: int, system_time: int, voltage_mv: int,
-               nodes: Sequence[tuple[int, int, int, int, int]], reserved: bytes = bytes(4)) -> bytes:
+def nodeframe3(
+    role: int,
+    ident: int,
+    local_time: int,
+    system_time: int,
+    voltage_mv: int,
+    nodes: Sequence[tuple[int, int, int, int, int]],
+    reserved: bytes = bytes(4),
+) -> bytes:
     """NodeFrame3 (0x55 0x05). nodes: (role, id, dis_mm, fp_rssi_byte, rx_rssi_byte) each."""
-    head = (struct.pack("<BBII", role, ident, local_time, system_time) + reserved
-            + struct.pack("<HB", voltage_mv, len(nodes)))
+    head = (
+        struct.pack("<BBII", role, ident, local_time, system_time)
+        + reserved
+        + struct.pack("<HB", voltage_mv, len(nodes))
+    )
     blocks = b"".join(bytes([r, i]) + _i24(d) + bytes([fp, rx]) for r, i, d, fp, rx in nodes)
     return _var_frame(0x05, head, blocks)
 
 
-def nodeframe5(role: int, ident: int, local_time: int, system_time: int, voltage_mv: int,
-               nodes: Sequence[tuple[int, int, int, int, int]]) -> bytes:
+def nodeframe5(
+    role: int,
+    ident: int,
+    local_time: int,
+    system_time: int,
+    voltage_mv: int,
+    nodes: Sequence[tuple[int, int, int, int, int]],
+) -> bytes:
     """NodeFrame5 (0x55 0x08): NodeFrame3 with u32 ids."""
-    head = (struct.pack("<BIII", role, ident, local_time, system_time) + bytes(4)
-            + struct.pack("<HB", voltage_mv, len(nodes)))
+    head = (
+        struct.pack("<BIII", role, ident, local_time, system_time)
+        + bytes(4)
+        + struct.pack("<HB", voltage_mv, len(nodes))
+    )
     blocks = b"".join(struct.pack("<BI", r, i) + _i24(d) + bytes([fp, rx]) for r, i, d, fp, rx in nodes)
     return _var_frame(0x08, head, blocks)
 
 
-def aoa_nodeframe0(role: int, ident: int, local_time: int, system_time: int, voltage_mv: int,
-                   nodes: Sequence[tuple[int, int, int, int, int, int]]) -> bytes:
+def aoa_nodeframe0(
+    role: int,
+    ident: int,
+    local_time: int,
+    system_time: int,
+    voltage_mv: int,
+    nodes: Sequence[tuple[int, int, int, int, int, int]],
+) -> bytes:
     """AOA NodeFrame0 (0x55 0x07). nodes: (role, id, dis_mm, angle_centideg, fp_byte, rx_byte)."""
-    head = (struct.pack("<BBII", role, ident, local_time, system_time) + bytes(4)
-            + struct.pack("<HB", voltage_mv, len(nodes)))
-    blocks = b"".join(bytes([r, i]) + _i24(d) + struct.pack("<hBB", a, fp, rx) + bytes(2)
-                      for r, i, d, a, fp, rx in nodes)
+    head = (
+        struct.pack("<BBII", role, ident, local_time, system_time)
+        + bytes(4)
+        + struct.pack("<HB", voltage_mv, len(nodes))
+    )
+    blocks = b"".join(
+        bytes([r, i]) + _i24(d) + struct.pack("<hBB", a, fp, rx) + bytes(2) for r, i, d, a, fp, rx in nodes
+    )
     return _var_frame(0x07, head, blocks)
 
 
-def nodeframe2(role: int, ident: int, system_time: int, local_time: int, voltage_mv: int,
-               pos_mm: Sequence[int], nodes: Sequence[tuple[int, int, int, int, int, int]]) -> bytes:
+def nodeframe2(
+    role: int,
+    ident: int,
+    system_time: int,
+    local_time: int,
+    voltage_mv: int,
+    pos_mm: Sequence[int],
+    nodes: Sequence[tuple[int, int, int, int, int, int]],
+) -> bytes:
     """NodeFrame2 (0x55 0x04) with zero velocity/IMU. nodes: (role, id, dis_mm, fp, rx, node_time)."""
     head = bytearray(115)  # bytes 4..118
     head[0], head[1] = role, ident
@@ -81,16 +117,26 @@ def nodeframe2(role: int, ident: int, system_time: int, local_time: int, voltage
     struct.pack_into("<4f", head, 78, 1.0, 0.0, 0.0, 0.0)
     struct.pack_into("<I", head, 98, local_time)
     struct.pack_into("<HB", head, 112, voltage_mv, len(nodes))
-    blocks = b"".join(bytes([r, i]) + _i24(d) + struct.pack("<BBI", fp, rx, t) + bytes(2)
-                      for r, i, d, fp, rx, t in nodes)
+    blocks = b"".join(
+        bytes([r, i]) + _i24(d) + struct.pack("<BBI", fp, rx, t) + bytes(2) for r, i, d, fp, rx, t in nodes
+    )
     return _var_frame(0x04, bytes(head), blocks)
 
 
-def nodeframe4(role: int, ident: int, local_time: int, system_time: int, voltage_mv: int,
-               tags: Sequence[tuple[int, int, Sequence[tuple[int, int]]]]) -> bytes:
+def nodeframe4(
+    role: int,
+    ident: int,
+    local_time: int,
+    system_time: int,
+    voltage_mv: int,
+    tags: Sequence[tuple[int, int, Sequence[tuple[int, int]]]],
+) -> bytes:
     """NodeFrame4 (0x55 0x06). tags: (tag_id, voltage_byte (V*20), [(anchor_id, dis_mm), ...])."""
-    head = (struct.pack("<BBII", role, ident, local_time, system_time) + bytes(4)
-            + struct.pack("<HB", voltage_mv, len(tags)))
+    head = (
+        struct.pack("<BBII", role, ident, local_time, system_time)
+        + bytes(4)
+        + struct.pack("<HB", voltage_mv, len(tags))
+    )
     blocks = b"".join(
         bytes([tid, 0, 0, tv, len(anchors)]) + b"".join(bytes([a]) + _i24(d) for a, d in anchors)
         for tid, tv, anchors in tags
@@ -98,8 +144,15 @@ def nodeframe4(role: int, ident: int, local_time: int, system_time: int, voltage
     return _var_frame(0x06, head, blocks)
 
 
-def tagframe0(ident: int, role: int, dis_mm: Sequence[int], local_time: int, system_time: int,
-              voltage_mv: int, pos_mm: Sequence[int] = (0, 0, 0)) -> bytes:
+def tagframe0(
+    ident: int,
+    role: int,
+    dis_mm: Sequence[int],
+    local_time: int,
+    system_time: int,
+    voltage_mv: int,
+    pos_mm: Sequence[int] = (0, 0, 0),
+) -> bytes:
     """TagFrame0 (0x55 0x01, 128 B). dis_mm: 8 distances to anchors A0..A7 (0 = none)."""
     b = bytearray(127)
     b[0:4] = bytes([0x55, 0x01, ident, role])
@@ -113,8 +166,15 @@ def tagframe0(ident: int, role: int, dis_mm: Sequence[int], local_time: int, sys
     return with_checksum(bytes(b))
 
 
-def anchorframe0(slots: Sequence[tuple[int, int, Sequence[int], Sequence[int]]], local_time: int,
-                 system_time: int, voltage_mv: int, ident: int = 0, role: int = 3, filler: int = 0xAB) -> bytes:
+def anchorframe0(
+    slots: Sequence[tuple[int, int, Sequence[int], Sequence[int]]],
+    local_time: int,
+    system_time: int,
+    voltage_mv: int,
+    ident: int = 0,
+    role: int = 3,
+    filler: int = 0xAB,
+) -> bytes:
     """AnchorFrame0 (0x55 0x00, 896 B, tail 0xEE). slots: (id, role, pos_mm[3], dis_cm[8]), up to 30.
 
     Unused slots get id 0xFF and `filler` bytes (real frames carry leftovers there)."""
@@ -159,8 +219,9 @@ def loc_get_anchor(pos_mm: Sequence[int], qf: int, tags: Sequence[tuple[int, int
     return b"\x40\x01\x00\x41\x0d" + _pos13(pos_mm, qf) + bytes([0x48, 1 + 13 * len(tags), len(tags)]) + items
 
 
-def lec_line(anchors: Sequence[tuple[str, Sequence[float], float]], pos: Sequence[float] | None = None,
-             qf: int = 0) -> bytes:
+def lec_line(
+    anchors: Sequence[tuple[str, Sequence[float], float]], pos: Sequence[float] | None = None, qf: int = 0
+) -> bytes:
     """Shell ``lec`` line with CRLF. anchors: (id 4-hex, (x, y, z) m, dist m)."""
     parts = [f"DIST,{len(anchors)}"]
     for k, (aid, p, d) in enumerate(anchors):
@@ -170,8 +231,9 @@ def lec_line(anchors: Sequence[tuple[str, Sequence[float], float]], pos: Sequenc
     return (",".join(parts) + "\r\n").encode()
 
 
-def les_line(anchors: Sequence[tuple[str, Sequence[float], float]], le_us: int,
-             est: Sequence[float] | None = None, qf: int = 0) -> bytes:
+def les_line(
+    anchors: Sequence[tuple[str, Sequence[float], float]], le_us: int, est: Sequence[float] | None = None, qf: int = 0
+) -> bytes:
     """Shell ``les`` line with CRLF."""
     toks = [f"{aid}[{p[0]:.2f},{p[1]:.2f},{p[2]:.2f}]={d:.2f}" for aid, p, d in anchors]
     toks.append(f"le_us={le_us}")
@@ -190,32 +252,56 @@ def random_nlink_frame(rng) -> bytes:
     volt = rng.randrange(3000, 5200)
 
     def nodes(k, ids=256):
-        return [(rng.randrange(3), rng.randrange(ids), rng.randrange(-500, 60000), rng.randrange(256),
-                 rng.randrange(256))
-                for _ in range(k)]
+        return [
+            (rng.randrange(3), rng.randrange(ids), rng.randrange(-500, 60000), rng.randrange(256), rng.randrange(256))
+            for _ in range(k)
+        ]
 
     if kind <= 1:
-        return nodeframe3(rng.randrange(3), rng.randrange(256), t, rng.randrange(1 << 32), volt,
-                          nodes(rng.randrange(9)))
+        return nodeframe3(
+            rng.randrange(3), rng.randrange(256), t, rng.randrange(1 << 32), volt, nodes(rng.randrange(9))
+        )
     if kind == 2:
         return nodeframe5(rng.randrange(3), rng.randrange(1 << 32), t, t, volt, nodes(rng.randrange(6), 1 << 32))
     if kind == 3:
-        return aoa_nodeframe0(2, rng.randrange(256), t, 0, volt,
-                              [n[:3] + (rng.randrange(-18000, 18000),) + n[3:] for n in nodes(rng.randrange(6))])
+        return aoa_nodeframe0(
+            2,
+            rng.randrange(256),
+            t,
+            0,
+            volt,
+            [n[:3] + (rng.randrange(-18000, 18000),) + n[3:] for n in nodes(rng.randrange(6))],
+        )
     if kind == 4:
-        return nodeframe2(2, rng.randrange(256), t, t, volt, [rng.randrange(-9000, 9000) for _ in range(3)],
-                          [n + (t,) for n in nodes(rng.randrange(5))])
+        return nodeframe2(
+            2,
+            rng.randrange(256),
+            t,
+            t,
+            volt,
+            [rng.randrange(-9000, 9000) for _ in range(3)],
+            [n + (t,) for n in nodes(rng.randrange(5))],
+        )
     if kind == 5:
-        tags = [(rng.randrange(256), rng.randrange(256),
-                 [(a, rng.randrange(0, 30000)) for a in range(rng.randrange(5))])
-                for _ in range(rng.randrange(4))]
+        tags = [
+            (rng.randrange(256), rng.randrange(256), [(a, rng.randrange(0, 30000)) for a in range(rng.randrange(5))])
+            for _ in range(rng.randrange(4))
+        ]
         return nodeframe4(1, rng.randrange(256), t, t, volt, tags)
     if kind == 6:
-        return tagframe0(rng.randrange(256), 2, [rng.choice((0, rng.randrange(1, 30000))) for _ in range(8)],
-                         t, t, volt)
+        return tagframe0(
+            rng.randrange(256), 2, [rng.choice((0, rng.randrange(1, 30000))) for _ in range(8)], t, t, volt
+        )
     if kind == 7:
-        slots = [(rng.randrange(255), 2, [rng.randrange(-9000, 9000) for _ in range(3)],
-                  [rng.randrange(0, 3000) for _ in range(8)]) for _ in range(rng.randrange(4))]
+        slots = [
+            (
+                rng.randrange(255),
+                2,
+                [rng.randrange(-9000, 9000) for _ in range(3)],
+                [rng.randrange(0, 3000) for _ in range(8)],
+            )
+            for _ in range(rng.randrange(4))
+        ]
         return anchorframe0(slots, t, t, volt, filler=rng.randrange(256))
     return unknown_frame(rng.randrange(0x0A, 0x40), bytes(rng.randrange(256) for _ in range(rng.randrange(40))))
 
@@ -232,8 +318,9 @@ def corrupt(frame: bytes, rng) -> bytes:
     return bytes(b)
 
 
-def hostile_stream(rng, n_frames: int, p_corrupt: float = 0.2, p_garbage: float = 0.3,
-                   max_garbage: int = 64) -> tuple[bytes, list[bytes]]:
+def hostile_stream(
+    rng, n_frames: int, p_corrupt: float = 0.2, p_garbage: float = 0.3, max_garbage: int = 64
+) -> tuple[bytes, list[bytes]]:
     """A byte stream of random valid frames, bit-flipped frames and random garbage (0x55 included).
 
     Returns:

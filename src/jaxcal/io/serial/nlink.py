@@ -232,8 +232,9 @@ def _dec_nodeframe1(raw: bytes):
     nodes = []
     for k in range(raw[26]):
         o = 27 + 20 * k
-        nodes.append({"role": raw[o], "id": raw[o + 1],
-                      "pos": tuple(_i24(raw, o + 2 + 3 * i) / 1000.0 for i in range(3))})
+        nodes.append(
+            {"role": raw[o], "id": raw[o + 1], "pos": tuple(_i24(raw, o + 2 + 3 * i) / 1000.0 for i in range(3))}
+        )
     f["nodes"] = tuple(nodes)
     return f, (), f["local_time"]
 
@@ -307,8 +308,9 @@ def _dec_anchorframe0(raw: bytes):
         if srole >= 16:
             raise FrameError(f"AnchorFrame0: implausible role byte {srole} in slot {s}")
         dis = tuple(_u16(raw, o + 11 + 2 * k) / 100.0 for k in range(8))
-        slots.append({"id": ident, "role": srole, "pos": tuple(_i24(raw, o + 2 + 3 * i) / 1000.0 for i in range(3)),
-                      "dis": dis})
+        slots.append(
+            {"id": ident, "role": srole, "pos": tuple(_i24(raw, o + 2 + 3 * i) / 1000.0 for i in range(3)), "dis": dis}
+        )
         me = node_id(srole, ident)
         ranges.extend(
             Range(me, node_id(1, k), d, math.nan, math.nan, _role(srole), "anchor") for k, d in enumerate(dis) if d != 0
