@@ -53,6 +53,8 @@ from jaxcal.errors import JaxcalError
 from jaxcal.mesh import mds
 from jaxcal.mesh.frame import to_frame
 from jaxcal.mesh.pair_covariance import pair_covariance, pair_spread
+from jaxcal.mesh.relocation import neighbour_table, relocation_moves
+from jaxcal.mesh.sparse_lm import SparseLevenbergMarquardt, normal_equations
 from jaxcal.params import as_dict, with_overrides
 from jaxcal.precision import in_float64
 
@@ -62,7 +64,7 @@ LOSSES = ("l2", "huber", "cauchy", "mixture")
 BIASES = ("auto", "none", "network", "node")
 SUMMARIES = ("median", "all")
 INITS = ("multi", "cmds", "smacof")
-SOLVERS = ("lm", "gn")
+SOLVERS = ("lm", "gn", "lm_dense")
 PAIR_WEIGHTS = ("none", "spread")
 ESTIMATES = ("map", "mean")
 RHAT_MAX = 1.1  # split R-hat above which (or undefined) estimate=mean falls back to the fit (Gelman-Rubin)
@@ -85,9 +87,11 @@ class BatchParams(eqx.Module):
         nlos_weight, nlos_mean_m: mixture share and mean excess length of NLOS ranges.
         outlier_weight, outlier_span_m: mixture share and span [m] of the uniform outlier floor.
         init: `multi` (classical MDS, SMACOF and random SMACOF starts; default), `cmds`, `smacof`.
-        n_starts: number of random SMACOF starts (with `init=multi`; at least N - 2 when relocating).
+        n_starts: number of random SMACOF starts (with `init=multi`), whatever N.
         smacof_iters: Guttman transforms per SMACOF run.
-        solver: `lm` (Levenberg-Marquardt, default) or `gn` (Gauss-Newton).
+        solver: `lm` (Levenberg-Marquardt on the sparse normal equations of the pairs, default; see
+            `jaxcal.mesh.sparse_lm`), `gn` (Gauss-Newton) or `lm_dense` (Optimistix's Levenberg-Marquardt
+            on the dense Jacobian: the same optimum, at O(M P^2) per step).
         max_steps: iteration limit of the least-squares solver.
         tol: relative and absolute tolerance of the least-squares solver.
         seed: random seed of the random starts (and of the offset bootstrap).
@@ -100,6 +104,10 @@ class BatchParams(eqx.Module):
             turn is moved to the best point of a grid over the scene (its own robust cost, the
             others fixed), which undoes flips (mirror images of weakly constrained nodes) and
             placements pulled by a gross outlier; each move is refined and kept if the total cost drops.
+            Every move is first refined locally (the node alone, its neighbours fixed: the exact change
+            of the total cost, `jaxcal.mesh.relocation`); the `relocate_candidates` moves that lower the
+            cost most are refined globally (all of them when N <= relocate_candidates: exhaustive).
+        relocate_candidates: moves refitted globally per relocation round (see `relocate_rounds`).
         relocate_grid: grid points per axis of the relocation search (2-D; a third of it per axis in 3-D).
         irls_iters: reweighting rounds of the all-epochs refinement (`summary=all`).
         z_up: 3-D only: of the two mirror images (z -> -z), report the one where the nodes other than
@@ -136,6 +144,7 @@ class BatchParams(eqx.Module):
     gnc_stages: int = 6
     relocate_rounds: int = 2
     relocate_grid: int = 48
+    relocate_candidates: int = 8
     estimate: str = "mean"
     student_nu: float = 1.0
     mcmc_chains: int = 16
@@ -159,10 +168,10 @@ class BatchParams(eqx.Module):
             raise JaxcalError("parameters nlos_weight + outlier_weight must be < 1")
         if min(self.n_starts, self.smacof_iters, self.relocate_rounds) < 0 or min(
                 self.max_steps, self.irls_iters, self.gnc_stages, self.relocate_grid, self.n_boot,
-                self.mcmc_chains) < 1 or self.mcmc_steps < 8:
+                self.mcmc_chains, self.relocate_candidates) < 1 or self.mcmc_steps < 8:
             raise JaxcalError("parameters n_starts, smacof_iters, relocate_rounds must be >= 0; "
-                              "max_steps, irls_iters, gnc_stages, relocate_grid, n_boot, mcmc_chains >= 1; "
-                              "mcmc_steps >= 8")
+                              "max_steps, irls_iters, gnc_stages, relocate_grid, relocate_candidates, n_boot, "
+                              "mcmc_chains >= 1; mcmc_steps >= 8")
 
 
 class Observations(eqx.Module):
@@ -414,10 +423,46 @@ def _cost(state: _State, args) -> Array:
     return 0.5 * (jnp.sum(f * f) + pc * pc + jnp.sum(pb * pb))
 
 
+def _rows(state: _State, args):
+    """Every residual of `_residuals` with its local Jacobian and parameter indices (`SparseLevenbergMarquardt`).
+
+    A pair's residual depends on (x_i, x_j, c, b_i, b_j) only; the prior rows on c and on one b_k. Indices
+    are into `ravel_pytree(state)` = (x.ravel(), c, b).
+    """
+    obs, nb = args
+    m, dim = state.x.shape
+    sc, sb = _prior_scales(nb)
+
+    def pair(u, z, w):
+        xi, xj, c, bi, bj = u[:dim], u[dim:2 * dim], u[2 * dim], u[2 * dim + 1], u[2 * dim + 2]
+        one = Observations(jnp.zeros(1, int), jnp.ones(1, int), z[None], w[None])
+        st = _State(jnp.stack([xi, xj]), c, jnp.stack([bi, bj]))
+        return (_sqrt_rho(_errors(st, one, nb), nb) * jnp.sqrt(one.w))[0]
+
+    u = jnp.concatenate([state.x[obs.i], state.x[obs.j], jnp.broadcast_to(state.c, obs.i.shape)[:, None],
+                         state.b[obs.i][:, None], state.b[obs.j][:, None]], axis=1)
+    f = jax.vmap(pair)(u, obs.z, obs.w)
+    g = jax.vmap(jax.jacfwd(pair))(u, obs.z, obs.w)
+    ax = jnp.arange(dim)
+    idx = jnp.concatenate([obs.i[:, None] * dim + ax, obs.j[:, None] * dim + ax,
+                           jnp.full((obs.i.shape[0], 1), m * dim), m * dim + 1 + obs.i[:, None],
+                           m * dim + 1 + obs.j[:, None]], axis=1)
+    n_loc = 2 * dim + 3
+    # prior rows: c / sc on the c column, b_k / sb on b_k's column (the other local entries are zero)
+    g_c = jnp.zeros((1, n_loc)).at[0, 2 * dim].set(1.0 / sc)
+    i_c = jnp.full((1, n_loc), m * dim)
+    g_b = jnp.zeros((m, n_loc)).at[:, 0].set(1.0 / sb)
+    i_b = jnp.broadcast_to((m * dim + 1 + jnp.arange(m))[:, None], (m, n_loc))
+    return (jnp.concatenate([f, jnp.reshape(state.c / sc, (1,)), state.b / sb]),
+            jnp.concatenate([g, g_c, g_b]), jnp.concatenate([idx, i_c, i_b]))
+
+
 def _solver(name: str, tol: float):
     if name == "gn":
         return optx.GaussNewton(rtol=tol, atol=tol)
-    return optx.LevenbergMarquardt(rtol=tol, atol=tol)
+    if name == "lm_dense":
+        return optx.LevenbergMarquardt(rtol=tol, atol=tol)
+    return SparseLevenbergMarquardt(rtol=tol, atol=tol, rows=_rows)
 
 
 @eqx.filter_jit
@@ -526,36 +571,6 @@ def offset_bootstrap(state: _State, obs: Observations, nb: _Numbers, key: Array,
 
 
 @eqx.filter_jit
-def _relocation_starts(state: _State, d: Array, w: Array, nb: _Numbers, grid_n: int) -> _State:
-    """(m,) batched starts: start k is `state` with node k moved to the grid point of least robust cost
-    of its own ranges (all other nodes fixed) outside the current node's neighbourhood."""
-    x = state.x
-    m, dim = x.shape
-    lo, hi = jnp.min(x, axis=0), jnp.max(x, axis=0)
-    margin = 0.25 * jnp.max(hi - lo)
-    axes = [jnp.linspace(lo[a] - margin, hi[a] + margin, grid_n) for a in range(dim)]
-    g = jnp.stack(jnp.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, dim)  # (G, dim)
-    dist = mds.pairwise_distances(jnp.concatenate([g, x], axis=0))[: g.shape[0], g.shape[0]:]  # (G, m)
-    # Score grid points with a loss no narrower than the grid spacing, or the true basin can be
-    # missed between two grid points; the refinement after the move uses the real scale.
-    spacing = (jnp.max(hi - lo) + 2 * margin) / (grid_n - 1)
-    nb_grid = eqx.tree_at(lambda t: t.sigma_r, nb, jnp.maximum(nb.sigma_r, spacing))
-
-    exclude = 3.0 * nb_grid.sigma_r
-
-    def best_point(k):
-        model = dist + nb.use_c * state.c + nb.use_b * (state.b[k] + state.b)[None, :]
-        cost = jnp.sum(w[k][None, :] * _rho(d[k][None, :] - model, nb_grid), axis=1)
-        # the best point of another basin: the current one is already a local optimum
-        near = jnp.linalg.norm(g - x[k], axis=1) < exclude
-        return g[jnp.argmin(jnp.where(near, jnp.inf, cost))]
-
-    moved = jax.vmap(best_point)(jnp.arange(m))  # (m, dim)
-    xs = jnp.where(jnp.eye(m, dtype=bool)[:, :, None], moved[None, :, :], x[None, :, :])
-    return _State(xs, jnp.broadcast_to(state.c, (m,)), jnp.broadcast_to(state.b, (m, m)))
-
-
-@eqx.filter_jit
 def _irls_all(y0: _State, obs: Observations, pair_i: Array, pair_j: Array, pair_of_obs: Array,
               nb: _Numbers, solver: str, tol: float, max_steps: int, n_iter: int) -> _State:
     """Minimise the robust cost over every single range by iteratively reweighted least squares.
@@ -592,30 +607,46 @@ def _pair_locations(state: _State, obs: Observations, pair_i: Array, pair_j: Arr
     return Observations(pair_i, pair_j, zbar, (wsum > 0).astype(zbar.dtype))
 
 
+def _error_rows(state: _State, obs: Observations, nb: _Numbers):
+    """Range errors e (M,) with their local Jacobians (M, 2D + 3) with respect to (x_i, x_j, c, b_i, b_j)
+    and those parameters' indices into `ravel_pytree(state)` = (x.ravel(), c, b)."""
+    m, dim = state.x.shape
+
+    def one(u, z):
+        st = _State(jnp.stack([u[:dim], u[dim:2 * dim]]), u[2 * dim], u[2 * dim + 1:])
+        return _errors(st, Observations(jnp.zeros(1, int), jnp.ones(1, int), z[None], jnp.ones(1)), nb)[0]
+
+    u = jnp.concatenate([state.x[obs.i], state.x[obs.j], jnp.broadcast_to(state.c, obs.i.shape)[:, None],
+                         state.b[obs.i][:, None], state.b[obs.j][:, None]], axis=1)
+    ax = jnp.arange(dim)
+    idx = jnp.concatenate([obs.i[:, None] * dim + ax, obs.j[:, None] * dim + ax,
+                           jnp.full((obs.i.shape[0], 1), m * dim), m * dim + 1 + obs.i[:, None],
+                           m * dim + 1 + obs.j[:, None]], axis=1)
+    return jax.vmap(one)(u, obs.z), jax.vmap(jax.grad(one))(u, obs.z), idx
+
+
 @eqx.filter_jit
 def _covariance(free: Array, template: Array, mask: Array, c: Array, b: Array, obs: Observations,
                 nb: _Numbers):
     """Covariance of the free position coordinates (plus offsets) in the anchor frame.
 
+    J^T W J is accumulated from each range's few nonzero derivatives (`sparse_lm.normal_equations`), so
+    memory follows the number of parameters squared, not ranges times parameters.
+
     Returns (cov of free coordinates (F, F), residual sigma^2 [m^2]).
     """
+    m, dim = template.shape
     idx = jnp.nonzero(mask.ravel(), size=free.shape[0])[0]
-
-    def errs(theta):
-        xf, cc, bb = theta
-        x = template.ravel().at[idx].set(xf).reshape(template.shape)
-        return _errors(_State(x, cc, bb), obs, nb)
-
-    theta = (free, c, b)
-    e = errs(theta)
-    jac = jax.jacfwd(errs)(theta)
+    x = template.ravel().at[idx].set(free).reshape(template.shape)
+    e, g, gi = _error_rows(_State(x, c, b), obs, nb)
     n_b = b.shape[0]
-    j = jnp.concatenate([jac[0], jac[1][:, None], jac[2]], axis=1)  # (M, F + 1 + n)
     w = _irls_weight(e, nb) * obs.w
     n_par = free.shape[0] + nb.use_c + nb.use_b * n_b
     dof = jnp.maximum(jnp.sum(obs.w) - n_par, 1.0)
     s2 = jnp.sum(w * e * e) / dof
-    h = (j.T * w) @ j / s2
+    h_all, _ = normal_equations(e, g * jnp.sqrt(w / s2)[:, None], gi, m * dim + 1 + n_b, chunk=1 << 16)
+    sel = jnp.concatenate([idx, m * dim + jnp.arange(1 + n_b)])  # (free coordinates, c, b)
+    h = h_all[sel][:, sel]
     # Unused offsets are pinned by a stiff prior; per-node offsets get their Gaussian prior.
     sc, sb = _prior_scales(nb)
     prior = jnp.concatenate([jnp.zeros(free.shape[0]), jnp.stack([1.0 / sc**2]), jnp.full(n_b, 1.0 / sb**2)])
@@ -900,6 +931,41 @@ def _active_nodes(i: np.ndarray, j: np.ndarray, n: int, a0: int) -> np.ndarray:
     return seen
 
 
+def _pair_matrix(obs: Observations, m: int) -> np.ndarray:
+    """(m, m) symmetric weights of the measured pairs (0 = not measured) of one-per-pair observations."""
+    w = np.zeros((m, m))
+    oi, oj, ow = np.asarray(obs.i), np.asarray(obs.j), np.asarray(obs.w)
+    w[oi, oj] = w[oj, oi] = np.where(ow > 0, ow, w[oi, oj])
+    return w
+
+
+def _sqrt_rho_of(nb: _Numbers, e: Array) -> Array:
+    return _sqrt_rho(e, nb)
+
+
+def _rho_of(nb: _Numbers, e: Array) -> Array:
+    return _rho(e, nb)
+
+
+def _relocation_candidates(state: _State, table, nb: _Numbers, grid_n: int, n_cand: int) -> _State:
+    """Batched starts of one relocation round: `state` with one node moved to another basin, for the
+    `n_cand` nodes whose locally refined move lowers the total cost most (every node when m <= n_cand)."""
+    m = state.x.shape[0]
+    nbr, d_nbr, w_nbr = (jnp.asarray(a) for a in table)
+    # Score grid points with a loss no narrower than the grid spacing, or the true basin can be missed
+    # between two grid points; the refinement after the move uses the real scale.
+    lo, hi = jnp.min(state.x, axis=0), jnp.max(state.x, axis=0)
+    spacing = 1.5 * jnp.max(hi - lo) / (grid_n - 1)  # grid span: the scene plus a quarter on either side
+    nb_grid = eqx.tree_at(lambda t: t.sigma_r, nb, jnp.maximum(nb.sigma_r, spacing))
+    offset = nb.use_c * state.c + nb.use_b * (state.b[:, None] + state.b[nbr])
+    moved, delta = relocation_moves(state.x, offset, nbr, d_nbr, w_nbr, jax.tree_util.Partial(_rho_of, nb_grid),
+                                    jax.tree_util.Partial(_sqrt_rho_of, nb), grid_n, 3.0 * nb_grid.sigma_r)
+    delta = np.where(np.isfinite(np.asarray(delta)), np.asarray(delta), np.inf)
+    pick = np.arange(m) if m <= n_cand else np.argsort(delta, kind="stable")[:n_cand]
+    xs = jnp.repeat(state.x[None], pick.size, axis=0).at[np.arange(pick.size), pick].set(moved[pick])
+    return _State(xs, jnp.broadcast_to(state.c, (pick.size,)), jnp.broadcast_to(state.b, (pick.size, m)))
+
+
 def stage_count(params: BatchParams) -> int:
     """Stages `solve` reports to its `progress` callback: multi-start fit, relocation, offset choice
     (bias=auto), all-ranges refinement (summary=all), covariance, posterior sampler (estimate=mean)."""
@@ -969,12 +1035,9 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     w_pair = np.isfinite(d_pair).astype(float)
     nb = _Numbers.of(p)
     key = jax.random.PRNGKey(p.seed)
-    # at least m - 2 random starts, so that the relocation below (m starts) has the same batch size
-    n_random = max(p.n_starts, m - 2) if p.init == "multi" and p.relocate_rounds > 0 else p.n_starts
+    # a fixed number of starts whatever N: relocation (below) repairs the nodes that no start placed well
     x0s = _initial_starts(jnp.asarray(np.nan_to_num(d_pair)), jnp.asarray(w_pair), key, p.dim, p.init,
-                          n_random, p.smacof_iters)
-    if x0s.shape[0] < m and p.relocate_rounds > 0:  # init=cmds or smacof: pad with copies
-        x0s = jnp.concatenate([x0s, x0s[:1].repeat(m - x0s.shape[0], axis=0)])
+                          p.n_starts, p.smacof_iters)
     if extra_starts is not None:
         x0s = jnp.concatenate([x0s, jnp.asarray(_extra_starts(extra_starts, sub, np.asarray(x0s[0]), p.dim))])
     s_count = x0s.shape[0]
@@ -986,12 +1049,13 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     state = jax.tree.map(lambda a: a[best], states)
     cost = float(costs[best])
     done(1)
-    d_j, w_j = jnp.asarray(np.nan_to_num(d_pair)), jnp.asarray(w_pair)
     grid_n = p.relocate_grid if p.dim == 2 else max(p.relocate_grid // 3, 2)
+    table = neighbour_table(d_pair, _pair_matrix(obs_med, m))
     for _ in range(p.relocate_rounds):
-        starts = _relocation_starts(state, d_j, w_j, nb, grid_n)
-        # same batch size and stage count as the multi-start fit: one compilation serves both
-        starts = jax.tree.map(lambda a: jnp.concatenate([a, a[:1].repeat(s_count - m, axis=0)]), starts)
+        starts = _relocation_candidates(state, table, nb, grid_n, p.relocate_candidates)
+        if starts.x.shape[0] < s_count:  # same batch size as the multi-start fit: one compilation serves both
+            starts = jax.tree.map(lambda a: jnp.concatenate([a, a[:1].repeat(s_count - a.shape[0], axis=0)]),
+                                  starts)
         moved, moved_costs = _fit_starts(starts, obs_med, nb, p.solver, p.tol, p.max_steps,
                                          jnp.ones_like(gnc))
         moved_costs = np.where(np.isfinite(np.asarray(moved_costs)), np.asarray(moved_costs), np.inf)
