@@ -115,3 +115,21 @@ def test_relocation_moves_equal_a_dense_reference(rng):
         best = minimize(moved_cost, np.asarray(moved[k]), method="Nelder-Mead",
                         options=dict(xatol=1e-10, fatol=1e-12, maxiter=4000)).fun
         np.testing.assert_allclose(float(delta[k]), best - total(x), atol=1e-6)
+
+
+def test_large_network_leaves_nodes_outside_the_rigid_frame_unplaced():
+    """Item 4 of issue #26 at N = 40 (the sparse path, local relocation): a node that ranges a single
+    neighbour and one that ranges two are not fixed by the ranges; both come out NaN, the rest placed."""
+    from jaxcal.sim.mesh import simulate
+    from jaxcal.sim.network import network_scenario
+
+    ds = simulate(network_scenario(40, seed=3, n_epochs=5), seed=3)
+    r = np.array(ds.range)
+    for node, keep in ((30, 1), (31, 2)):
+        nbrs = np.flatnonzero(np.isfinite(r[:, node]).any(axis=0))
+        drop = [k for k in nbrs if k not in (30, 31)][keep:]
+        r[:, node, drop] = r[:, drop, node] = np.nan
+    ds = eqx.tree_at(lambda d: d.range, ds, r)
+    res = B.calibrate(ds, {"estimate": "map", "summary": "median", "smacof_iters": 100}, config="conf1")
+    assert np.isnan(res.position[[30, 31]]).all()
+    assert np.isfinite(res.position[np.setdiff1d(np.arange(40), [30, 31])]).all()

@@ -509,7 +509,9 @@ def _fit_starts(y0s: _State, obs: Observations, nb: _Numbers, solver: str, tol: 
         y, _ = jax.lax.scan(stage, y0, factors)
         return y, _cost(y, args)
 
-    return jax.vmap(one)(y0s)
+    # one start at a time: each stops at its own step count (a vmapped while loop runs every start as
+    # long as the slowest, and a batched scatter of the sparse normal equations is slow on CPU)
+    return jax.lax.map(one, y0s)
 
 
 def _procrustes_rmse(x: Array, ref: Array) -> Array:
