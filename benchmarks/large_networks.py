@@ -4,10 +4,10 @@ For each N: `jaxcal simulate mesh --scenario network --nodes N` (random site at 
 pairs within `--range-limit` measured, walls, 200 epochs; `jaxcal.sim.network`), then each jaxcal
 method as a whole `jaxcal calibrate` process (start-up and compilation included, as a user runs it),
 and the SciPy peer a user would write (robust least squares, soft_l1, on the per-pair medians, best
-cost of `--peer-starts` random starts) in this process. Per run: wall time, CPU time, the load average, the process's peak
-resident memory (`os.wait4` rusage of the child; the peer: this process's peak), aligned RMSE of the
-final positions against the truth (best rigid motion with reflection, placed nodes only) and the
-number of nodes placed. A run past `--timeout` is stopped and marked so.
+cost of `--peer-starts` random starts) in this process. Per run: wall time, CPU time (user + system; on
+a shared machine the steadier measure), the load average, the process's peak resident memory
+(`os.wait4` rusage of the child; the peer: this process's peak), aligned RMSE of the final positions
+against the truth (best rigid motion with reflection, placed nodes only) and the number of nodes placed. A run past `--timeout` is stopped and marked so.
 
 Usage:
     python benchmarks/large_networks.py --nodes 10,20,40,100 --methods batch,pgp,pgp+batch,scipy \

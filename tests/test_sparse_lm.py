@@ -88,7 +88,6 @@ def test_relocation_moves_equal_a_dense_reference(rng):
     p = B.BatchParams(loss="cauchy")
     nb = B._Numbers.of(p)
     m = x.shape[0]
-    st = B._State(jnp.asarray(x), jnp.asarray(0.0), jnp.zeros(m))
     d_pair = np.full((m, m), np.nan)
     d_pair[np.asarray(obs.i), np.asarray(obs.j)] = d_pair[np.asarray(obs.j), np.asarray(obs.i)] = np.asarray(obs.z)
     nbr, dn, wn = neighbour_table(d_pair, np.isfinite(d_pair).astype(float))
@@ -130,6 +129,7 @@ def test_large_network_leaves_nodes_outside_the_rigid_frame_unplaced():
         drop = [k for k in nbrs if k not in (30, 31)][keep:]
         r[:, node, drop] = r[:, drop, node] = np.nan
     ds = eqx.tree_at(lambda d: d.range, ds, r)
-    res = B.calibrate(ds, {"estimate": "map", "summary": "median", "smacof_iters": 100}, config="conf1")
+    res = B.calibrate(ds, {"estimate": "map", "summary": "median", "smacof_iters": 100},
+                      config="conf1")
     assert np.isnan(res.position[[30, 31]]).all()
     assert np.isfinite(res.position[np.setdiff1d(np.arange(40), [30, 31])]).all()
