@@ -4,10 +4,11 @@ For each N: `jaxcal simulate mesh --scenario network --nodes N` (random site at 
 pairs within `--range-limit` measured, walls, 200 epochs; `jaxcal.sim.network`), then each jaxcal
 method as a whole `jaxcal calibrate` process (start-up and compilation included, as a user runs it),
 and the SciPy peer a user would write (robust least squares, soft_l1, on the per-pair medians, best
-cost of `--peer-starts` random starts) in this process. Per run: wall time, the process's peak
-resident memory (`os.wait4` rusage of the child; the peer: this process's peak), aligned RMSE of the
-final positions against the truth (best rigid motion with reflection, placed nodes only) and the
-number of nodes placed. A run past `--timeout` is stopped and marked so.
+cost of `--peer-starts` random starts) in this process. Per run: wall time, CPU time (user + system; on
+a shared machine the steadier measure), the load average, the process's peak resident memory
+(`os.wait4` rusage of the child; the peer: this process's peak), aligned RMSE of the final positions
+against the truth (best rigid motion with reflection, placed nodes only) and the number of nodes placed.
+A run past `--timeout` is stopped and marked so.
 
 Usage:
     python benchmarks/large_networks.py --nodes 10,20,40,100 --methods batch,pgp,pgp+batch,scipy \
@@ -39,22 +40,22 @@ from peers import aligned_rmse, median_matrix  # noqa: E402
 JAXCAL_METHODS = ("batch", "pgp", "pgp+batch", "cf", "parametric")
 
 
-def run_process(cmd: list[str], timeout: float) -> tuple[int | None, float, float]:
-    """(exit code or None on time-out, wall [s], peak RSS [MiB]) of one child process."""
+def run_process(cmd: list[str], timeout: float) -> tuple[int | None, float, float, float]:
+    """(exit code or None on time-out, wall [s], peak RSS [MiB], CPU time (user + system) [s]) of one
+    child process. On a shared machine the CPU time is the steadier measure of the work done."""
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
     deadline = t0 + timeout
     while True:
         pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
         if pid:
             wall = time.perf_counter() - t0
             proc.returncode = os.waitstatus_to_exitcode(status)
-            return proc.returncode, wall, usage.ru_maxrss / 1024.0
+            return proc.returncode, wall, usage.ru_maxrss / 1024.0, usage.ru_utime + usage.ru_stime
         if time.perf_counter() > deadline:
             os.killpg(proc.pid, signal.SIGKILL)
             _, status, usage = os.wait4(proc.pid, 0)
-            return None, time.perf_counter() - t0, usage.ru_maxrss / 1024.0
+            return None, time.perf_counter() - t0, usage.ru_maxrss / 1024.0, usage.ru_utime + usage.ru_stime
         time.sleep(0.05)
 
 
@@ -75,8 +76,7 @@ def peer_scipy_starts(range_m: np.ndarray, starts: int, seed: int) -> np.ndarray
         return np.linalg.norm(x[i] - x[j], axis=1) - z
 
     for _ in range(starts):
-        sol = least_squares(fun, rng.uniform(0, span, (med.shape[0], 2)).ravel(), loss="soft_l1",
-                            f_scale=0.2)
+        sol = least_squares(fun, rng.uniform(0, span, (med.shape[0], 2)).ravel(), loss="soft_l1", f_scale=0.2)
         if sol.cost < best_cost:
             best, best_cost = sol.x.reshape(-1, 2), sol.cost
     return best
@@ -90,8 +90,13 @@ def main(argv=None) -> int:
     ap.add_argument("--epochs", type=int, default=200)
     ap.add_argument("--timeout", type=float, default=1800.0, help="per run [s]")
     ap.add_argument("--peer-starts", type=int, default=20)
-    ap.add_argument("--set", action="append", default=[], metavar="METHOD:KEY=VALUE",
-                    help="extra --set for one method, e.g. batch:estimate=map")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="METHOD:KEY=VALUE",
+        help="extra --set for one method, e.g. batch:estimate=map",
+    )
     ap.add_argument("--out", default="bench-out/large")
     a = ap.parse_args(argv)
     try:
@@ -126,40 +131,83 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for n in sizes:
             net = Path(tmp) / f"net{n}.h5"
-            subprocess.run([sys.executable, "-m", "jaxcal.cli", "simulate", "mesh", "--scenario",
-                            "network", "--nodes", str(n), "--epochs", str(a.epochs), "--seed",
-                            str(a.seed), "-o", str(net), "--quiet"], check=True, env=env)
+            subprocess.run(
+                [
+                    sys.executable,
+                    "-m",
+                    "jaxcal.cli",
+                    "simulate",
+                    "mesh",
+                    "--scenario",
+                    "network",
+                    "--nodes",
+                    str(n),
+                    "--epochs",
+                    str(a.epochs),
+                    "--seed",
+                    str(a.seed),
+                    "-o",
+                    str(net),
+                    "--quiet",
+                ],
+                check=True,
+                env=env,
+            )
             ds = hdf5.read(net)
             truth = np.asarray(ds.truth)[:, :2]
             pairs = int(np.isfinite(ds.range).any(axis=0).sum() // 2)
             for m in methods:
                 row = {"nodes": n, "pairs": pairs, "method": m, "load": round(os.getloadavg()[0], 1)}
                 if m == "scipy":
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.process_time()
                     est = peer_scipy_starts(np.asarray(ds.range), a.peer_starts, a.seed)
-                    row.update(seconds=time.perf_counter() - t0, rc=0,
-                               peak_mib=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
+                    row.update(
+                        seconds=time.perf_counter() - t0,
+                        cpu_s=time.process_time() - c0,
+                        rc=0,
+                        peak_mib=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+                    )
                 else:
                     res_path = Path(tmp) / f"res{n}_{m.replace('+', '_')}.h5"
-                    cmd = [sys.executable, "-m", "jaxcal.cli", "calibrate", str(net), "--method", m,
-                           "--config", "conf1", "-o", str(res_path), "--quiet", *extra.get(m, [])]
-                    rc, wall, peak = run_process(cmd, a.timeout)
-                    row.update(seconds=wall, rc=rc, peak_mib=peak)
+                    cmd = [
+                        sys.executable,
+                        "-m",
+                        "jaxcal.cli",
+                        "calibrate",
+                        str(net),
+                        "--method",
+                        m,
+                        "--config",
+                        "conf1",
+                        "-o",
+                        str(res_path),
+                        "--quiet",
+                        *extra.get(m, []),
+                    ]
+                    rc, wall, peak, cpu = run_process(cmd, a.timeout)
+                    row.update(seconds=wall, cpu_s=cpu, rc=rc, peak_mib=peak)
                     est = np.asarray(hdf5.read(res_path).position)[:, :2] if rc == 0 else None
                 if est is not None:
-                    row.update(rmse_m=aligned_rmse(est, truth),
-                               placed=int(np.isfinite(est).all(axis=1).sum()))
+                    row.update(rmse_m=aligned_rmse(est, truth), placed=int(np.isfinite(est).all(axis=1).sum()))
                 print(json.dumps(row), flush=True)
                 rows.append(row)
     (out / "runs.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
-    lines = ["| N | pairs | method | time [s] | peak memory [MiB] | aligned RMSE [m] | placed |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| N | pairs | method | time [s] | CPU time [s] | load | peak memory [MiB] | aligned RMSE [m] | placed |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
-        t = f"{r['seconds']:.1f}" if r["rc"] == 0 else (
-            f"> {a.timeout:.0f} (stopped)" if r["rc"] is None else f"failed ({r['rc']})")
+        t = (
+            f"{r['seconds']:.1f}"
+            if r["rc"] == 0
+            else (f"> {a.timeout:.0f} (stopped)" if r["rc"] is None else f"failed ({r['rc']})")
+        )
         rm = f"{r['rmse_m']:.3f}" if "rmse_m" in r else ""
-        lines.append(f"| {r['nodes']} | {r['pairs']} | {r['method']} | {t} | {r['peak_mib']:.0f} | {rm} |"
-                     f" {r.get('placed', '')}/{r['nodes']} |")
+        lines.append(
+            f"| {r['nodes']} | {r['pairs']} | {r['method']} | {t} | {r['cpu_s']:.0f} | {r['load']} |"
+            f" {r['peak_mib']:.0f} | {rm} |"
+            f" {r.get('placed', '')}/{r['nodes']} |"
+        )
     table = "\n".join(lines)
     (out / "table.md").write_text(table + "\n")
     print(table)

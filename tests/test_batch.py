@@ -111,8 +111,7 @@ def test_smacof_matches_reference_and_decreases_stress(rng):
     x0 = rng.uniform(0, 10, (6, 2))
     ours = np.asarray(mds.smacof(jnp.asarray(d), jnp.asarray(w), jnp.asarray(x0), 5))
     np.testing.assert_allclose(ours, _smacof_reference(d, w, x0, 5), atol=1e-9)
-    s = [float(mds.stress(mds.smacof(jnp.asarray(d), jnp.asarray(w), jnp.asarray(x0), k), d, w))
-         for k in (0, 1, 5, 50)]
+    s = [float(mds.stress(mds.smacof(jnp.asarray(d), jnp.asarray(w), jnp.asarray(x0), k), d, w)) for k in (0, 1, 5, 50)]
     assert all(a >= b - 1e-12 for a, b in zip(s, s[1:], strict=False)), s
 
 
@@ -342,7 +341,7 @@ def test_covariance_shape_psd_and_equals_finite_difference_reference(rng):
     idx = np.flatnonzero(mask.ravel())
     full[np.ix_(idx, idx)] = ref
     for k in range(N):
-        np.testing.assert_allclose(cov[k], full[2 * k:2 * k + 2, 2 * k:2 * k + 2], rtol=1e-4, atol=1e-12)
+        np.testing.assert_allclose(cov[k], full[2 * k : 2 * k + 2, 2 * k : 2 * k + 2], rtol=1e-4, atol=1e-12)
 
 
 def _gauge_jacobian(x, i, j):
@@ -352,7 +351,7 @@ def _gauge_jacobian(x, i, j):
     u = (x[i] - x[j]) / np.linalg.norm(x[i] - x[j], axis=1)[:, None]
     full = np.zeros((len(i), 2 * n))
     for k in range(len(i)):
-        full[k, 2 * i[k]:2 * i[k] + 2], full[k, 2 * j[k]:2 * j[k] + 2] = u[k], -u[k]
+        full[k, 2 * i[k] : 2 * i[k] + 2], full[k, 2 * j[k] : 2 * j[k] + 2] = u[k], -u[k]
     free = np.r_[2, np.arange(4, 2 * n)]
     return np.column_stack([full[:, free], np.ones(len(i))]), free
 
@@ -377,8 +376,9 @@ def test_pair_covariance_marks_unfixed_coordinates_nan(rng):
     keep = ~((i == 5) | (j == 5)) | ((i == 0) & (j == 5))  # node 5 ranges node 0 only
     i, j = i[keep], j[keep]
     jac, free = _gauge_jacobian(truth, i, j)
-    cov, _ = pair_covariance(jac, rng.normal(0, 0.05, len(i)), np.ones(len(i)), np.full(len(i), 0.1), i, j, 6,
-                             np.zeros(jac.shape[1]))
+    cov, _ = pair_covariance(
+        jac, rng.normal(0, 0.05, len(i)), np.ones(len(i)), np.full(len(i), 0.1), i, j, 6, np.zeros(jac.shape[1])
+    )
     node5 = np.isin(free, (10, 11))
     node5 = np.r_[node5, False]
     assert np.isnan(cov[node5]).all() and np.isfinite(cov[np.ix_(~node5, ~node5)]).all()
@@ -399,8 +399,12 @@ def test_pair_covariance_holds_the_truth_where_its_model_holds(rng):
     sigma_true = 0.04**2 * np.eye(len(i)) + 0.03**2 * shared + np.outer(spread, spread)
     inside, inside_true, nees = [], [], []
     for _ in range(150):
-        u = (rng.normal(0, 0.04, len(i)) + rng.normal(0, 0.03, n)[i] + rng.normal(0, 0.03, n)[j]
-             + rng.normal(0, 1.0) * spread)
+        u = (
+            rng.normal(0, 0.04, len(i))
+            + rng.normal(0, 0.03, n)[i]
+            + rng.normal(0, 0.03, n)[j]
+            + rng.normal(0, 1.0) * spread
+        )
         z = np.linalg.norm(truth[i] - truth[j], axis=1) + 0.2 + u
         x, c = to_frame(truth + rng.normal(0, 0.05, truth.shape), 0, 1, 2), 0.0
         for _ in range(6):  # Gauss-Newton in the gauge-fixed coordinates
@@ -457,15 +461,40 @@ def test_bad_parameters_rejected():
 
 def test_cli_calibrate_batch(tmp_path, rng):
     truth = random_geometry(rng, 2)
-    ds = MeshDataset(name="small", node_ids=[f"n{k}" for k in range(N)], time=np.arange(K) * 0.1,
-                     range=ranges_of(truth, noise=0.02, offset=-0.15, rng=rng), truth=truth,
-                     configs={"c": (2, 4, 0)})
+    ds = MeshDataset(
+        name="small",
+        node_ids=[f"n{k}" for k in range(N)],
+        time=np.arange(K) * 0.1,
+        range=ranges_of(truth, noise=0.02, offset=-0.15, rng=rng),
+        truth=truth,
+        configs={"c": (2, 4, 0)},
+    )
     f = tmp_path / "small.h5"
     hdf5.write(f, ds)
     out = tmp_path / "res.h5"
-    proc = run_cli("calibrate", f, "--method", "batch", "-o", out, "--config", "c",
-                   "--set", "n_starts=2", "--set", "loss=huber", "--set", "relocate_rounds=0",
-                   "--set", "gnc_stages=1", "--set", "summary=median", "--set", "init=cmds", "--json")
+    proc = run_cli(
+        "calibrate",
+        f,
+        "--method",
+        "batch",
+        "-o",
+        out,
+        "--config",
+        "c",
+        "--set",
+        "n_starts=2",
+        "--set",
+        "loss=huber",
+        "--set",
+        "relocate_rounds=0",
+        "--set",
+        "gnc_stages=1",
+        "--set",
+        "summary=median",
+        "--set",
+        "init=cmds",
+        "--json",
+    )
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)
     assert summary["estimated"] == N and summary["partial"] == 0
@@ -545,13 +574,15 @@ def test_posterior_mean_equals_importance_sampling_reference(rng):
         r[0, a, b] = r[0, b, a] = np.nan
     p_map = B.BatchParams(summary="median", **FAST)
     sol_map = B.solve(r, (0, 1, 2), p_map)
-    sol = B.solve(r, (0, 1, 2), B.BatchParams(summary="median", mcmc_steps=6000, student_nu=NU,
-                                            **{**FAST, "estimate": "mean"}))
+    sol = B.solve(
+        r, (0, 1, 2), B.BatchParams(summary="median", mcmc_steps=6000, student_nu=NU, **{**FAST, "estimate": "mean"})
+    )
     assert np.isfinite(sol.mcmc_accept) and sol.mcmc_rhat < 1.05 and sol.estimate == "mean"
     iu, ju = np.triu_indices(n, 1)
     ok = np.isfinite(r[0, iu, ju])
-    ref_mean, ref_cov, ess, mask = _posterior_reference(sol_map.position, sol_map.offset_m, r[0, iu, ju][ok],
-                                                        iu[ok], ju[ok], NU, 400_000, rng)
+    ref_mean, ref_cov, ess, mask = _posterior_reference(
+        sol_map.position, sol_map.offset_m, r[0, iu, ju][ok], iu[ok], ju[ok], NU, 400_000, rng
+    )
     assert ess > 2_000  # the reference itself is trustworthy (Monte Carlo error < 0.03 sd)
     sd = np.sqrt(np.diag(ref_cov))
     got = np.r_[sol.position[mask], sol.offset_m]
@@ -580,8 +611,12 @@ def test_split_rhat_reference():
 
 
 def test_estimate_mean_rejects_bad_settings():
-    for kw, word in ((dict(estimate="median"), "estimate"), (dict(student_nu=0.0), "student_nu"),
-                     (dict(mcmc_steps=4), "mcmc_steps"), (dict(mcmc_chains=0), "mcmc_chains")):
+    for kw, word in (
+        (dict(estimate="median"), "estimate"),
+        (dict(student_nu=0.0), "student_nu"),
+        (dict(mcmc_steps=4), "mcmc_steps"),
+        (dict(mcmc_chains=0), "mcmc_chains"),
+    ):
         with pytest.raises(JaxcalError, match=word):
             B.BatchParams(**kw)
 
@@ -651,3 +686,25 @@ def test_covariance_does_not_shrink_with_epochs_of_a_constant_pair_error(rng):
         sd.append(np.sqrt(np.trace(sol.covariance[2:], axis1=1, axis2=2)))
     ratio = sd[1] / sd[0]
     assert np.all(ratio > 0.7) and np.all(ratio < 1.4), ratio
+
+
+def test_fixed_starts_and_local_relocation_reach_the_exhaustive_optimum():
+    """The default search (n_starts random starts whatever N; relocation refits only the best locally
+    refined moves) reaches the optimum of the exhaustive one (N - 2 random starts, every move refitted
+    globally) on small sparse networks, seeds 0-19 (checked on 0-23: equal costs on all; relocation
+    lowers the multi-start cost on some)."""
+    from jaxcal.mesh.identify import identify_ranges
+    from jaxcal.sim.mesh import simulate
+    from jaxcal.sim.network import network_scenario
+
+    base = dict(estimate="map", summary="median", smacof_iters=100)
+    relocated = 0
+    for seed in range(20):
+        r = np.asarray(simulate(network_scenario(16, seed=seed, n_epochs=10, range_limit_m=14.0), seed=seed).range)
+        fast = B.solve(r, (0, 1, 2), B.BatchParams(**base))
+        ref = B.solve(r, (0, 1, 2), B.BatchParams(**base, n_starts=14, relocate_candidates=10**6))
+        assert fast.cost <= ref.cost + 1e-7 * abs(ref.cost), seed
+        fixed = identify_ranges(r, (0, 1, 2)).fixed  # the others may sit at either of two equal-cost mirrors
+        np.testing.assert_allclose(fast.position[fixed], ref.position[fixed], atol=1e-5, err_msg=str(seed))
+        relocated += fast.cost < np.min(fast.start_costs) - 1e-6
+    assert relocated >= 1  # the comparison exercised relocation

@@ -54,17 +54,27 @@ from jaxcal.errors import JaxcalError
 from jaxcal.mesh import mds
 from jaxcal.mesh.frame import to_frame
 from jaxcal.mesh.pair_covariance import pair_covariance, pair_spread
+from jaxcal.mesh.relocation import neighbour_table, relocation_moves
+from jaxcal.mesh.sparse_lm import SparseLevenbergMarquardt, normal_equations
 from jaxcal.params import as_dict, with_overrides
 from jaxcal.precision import in_float64
 
-__all__ = ["BatchParams", "Observations", "BatchSolution", "observations", "solve", "check_solver", "calibrate",
-           "LOSSES"]
+__all__ = [
+    "BatchParams",
+    "Observations",
+    "BatchSolution",
+    "observations",
+    "solve",
+    "check_solver",
+    "calibrate",
+    "LOSSES",
+]
 
 LOSSES = ("l2", "huber", "cauchy", "mixture")
 BIASES = ("auto", "none", "network", "node")
 SUMMARIES = ("median", "all")
 INITS = ("multi", "cmds", "smacof")
-SOLVERS = ("lm", "gn")
+SOLVERS = ("lm", "gn", "lm_dense")
 PAIR_WEIGHTS = ("none", "spread")
 ESTIMATES = ("map", "mean")
 RHAT_MAX = 1.1  # split R-hat above which (or undefined) estimate=mean falls back to the fit (Gelman-Rubin)
@@ -87,9 +97,11 @@ class BatchParams(eqx.Module):
         nlos_weight, nlos_mean_m: mixture share and mean excess length of NLOS ranges.
         outlier_weight, outlier_span_m: mixture share and span [m] of the uniform outlier floor.
         init: `multi` (classical MDS, SMACOF and random SMACOF starts; default), `cmds`, `smacof`.
-        n_starts: number of random SMACOF starts (with `init=multi`; at least N - 2 when relocating).
+        n_starts: number of random SMACOF starts (with `init=multi`), whatever N.
         smacof_iters: Guttman transforms per SMACOF run.
-        solver: `lm` (Levenberg-Marquardt, default) or `gn` (Gauss-Newton).
+        solver: `lm` (Levenberg-Marquardt on the sparse normal equations of the pairs, default; see
+            `jaxcal.mesh.sparse_lm`), `gn` (Gauss-Newton) or `lm_dense` (Optimistix's Levenberg-Marquardt
+            on the dense Jacobian: the same optimum, at O(M P^2) per step).
         max_steps: iteration limit of the least-squares solver.
         tol: relative and absolute tolerance of the least-squares solver.
         seed: random seed of the random starts (and of the offset bootstrap).
@@ -102,6 +114,10 @@ class BatchParams(eqx.Module):
             turn is moved to the best point of a grid over the scene (its own robust cost, the
             others fixed), which undoes flips (mirror images of weakly constrained nodes) and
             placements pulled by a gross outlier; each move is refined and kept if the total cost drops.
+            Every move is first refined locally (the node alone, its neighbours fixed: the exact change
+            of the total cost, `jaxcal.mesh.relocation`); the `relocate_candidates` moves that lower the
+            cost most are refined globally (all of them when N <= relocate_candidates: exhaustive).
+        relocate_candidates: moves refitted globally per relocation round (see `relocate_rounds`).
         relocate_grid: grid points per axis of the relocation search (2-D; a third of it per axis in 3-D).
         irls_iters: reweighting rounds of the all-epochs refinement (`summary=all`).
         z_up: 3-D only: of the two mirror images (z -> -z), report the one where the nodes other than
@@ -138,17 +154,26 @@ class BatchParams(eqx.Module):
     gnc_stages: int = 6
     relocate_rounds: int = 2
     relocate_grid: int = 48
+    relocate_candidates: int = 8
     estimate: str = "mean"
     student_nu: float = 1.0
     mcmc_chains: int = 16
     mcmc_steps: int = 4000
 
     def __check_init__(self):
-        for name, allowed in (("loss", LOSSES), ("bias", BIASES), ("summary", SUMMARIES),
-                              ("init", INITS), ("solver", SOLVERS), ("pair_weight", PAIR_WEIGHTS),
-                              ("estimate", ESTIMATES)):
+        for name, allowed in (
+            ("loss", LOSSES),
+            ("bias", BIASES),
+            ("summary", SUMMARIES),
+            ("init", INITS),
+            ("solver", SOLVERS),
+            ("pair_weight", PAIR_WEIGHTS),
+            ("estimate", ESTIMATES),
+        ):
             if getattr(self, name) not in allowed:
-                raise JaxcalError(f"parameter {name}: expected one of {', '.join(allowed)}, got {getattr(self, name)!r}")
+                raise JaxcalError(
+                    f"parameter {name}: expected one of {', '.join(allowed)}, got {getattr(self, name)!r}"
+                )
         if self.dim not in (2, 3):
             raise JaxcalError(f"parameter dim: expected 2 or 3, got {self.dim}")
         for name in ("sigma_r", "node_bias_sigma_m", "nlos_mean_m", "outlier_span_m", "tol", "student_nu"):
@@ -159,12 +184,25 @@ class BatchParams(eqx.Module):
                 raise JaxcalError(f"parameter {name}: must be in [0, 1), got {getattr(self, name)}")
         if self.nlos_weight + self.outlier_weight >= 1:
             raise JaxcalError("parameters nlos_weight + outlier_weight must be < 1")
-        if min(self.n_starts, self.smacof_iters, self.relocate_rounds) < 0 or min(
-                self.max_steps, self.irls_iters, self.gnc_stages, self.relocate_grid, self.n_boot,
-                self.mcmc_chains) < 1 or self.mcmc_steps < 8:
-            raise JaxcalError("parameters n_starts, smacof_iters, relocate_rounds must be >= 0; "
-                              "max_steps, irls_iters, gnc_stages, relocate_grid, n_boot, mcmc_chains >= 1; "
-                              "mcmc_steps >= 8")
+        if (
+            min(self.n_starts, self.smacof_iters, self.relocate_rounds) < 0
+            or min(
+                self.max_steps,
+                self.irls_iters,
+                self.gnc_stages,
+                self.relocate_grid,
+                self.n_boot,
+                self.mcmc_chains,
+                self.relocate_candidates,
+            )
+            < 1
+            or self.mcmc_steps < 8
+        ):
+            raise JaxcalError(
+                "parameters n_starts, smacof_iters, relocate_rounds must be >= 0; "
+                "max_steps, irls_iters, gnc_stages, relocate_grid, relocate_candidates, n_boot, "
+                "mcmc_chains >= 1; mcmc_steps >= 8"
+            )
 
 
 class Observations(eqx.Module):
@@ -308,11 +346,16 @@ class _Numbers(eqx.Module):
 
     @classmethod
     def of(cls, p: BatchParams) -> _Numbers:
-        nums = [jnp.asarray(float(getattr(p, f)), dtype=float) for f in
-                ("sigma_r", "node_bias_sigma_m", "nlos_weight", "nlos_mean_m", "outlier_weight",
-                 "outlier_span_m")]
-        return cls(*nums, jnp.asarray(LOSSES.index(p.loss)), jnp.asarray(float(p.bias != "none")),
-                   jnp.asarray(float(p.bias == "node")))
+        nums = [
+            jnp.asarray(float(getattr(p, f)), dtype=float)
+            for f in ("sigma_r", "node_bias_sigma_m", "nlos_weight", "nlos_mean_m", "outlier_weight", "outlier_span_m")
+        ]
+        return cls(
+            *nums,
+            jnp.asarray(LOSSES.index(p.loss)),
+            jnp.asarray(float(p.bias != "none")),
+            jnp.asarray(float(p.bias == "node")),
+        )
 
     def with_loss(self, loss: str) -> _Numbers:
         return eqx.tree_at(lambda nb: nb.loss_id, self, jnp.asarray(LOSSES.index(loss)))
@@ -325,8 +368,13 @@ def _mixture_logpdf(e, nb: _Numbers):
     w_out, w_nlos = nb.outlier_weight, nb.nlos_weight
     w_los = 1.0 - w_nlos - w_out
     log_los = jnp.log(w_los) - 0.5 * (e / s) ** 2 - jnp.log(s * jnp.sqrt(2 * jnp.pi))
-    log_nlos = (jnp.log(jnp.maximum(w_nlos, 1e-300)) + jnp.log(lam) + 0.5 * (lam * s) ** 2 - lam * e
-                + jax.scipy.special.log_ndtr(e / s - lam * s))
+    log_nlos = (
+        jnp.log(jnp.maximum(w_nlos, 1e-300))
+        + jnp.log(lam)
+        + 0.5 * (lam * s) ** 2
+        - lam * e
+        + jax.scipy.special.log_ndtr(e / s - lam * s)
+    )
     log_out = jnp.broadcast_to(jnp.log(jnp.maximum(w_out, 1e-300)) - jnp.log(nb.outlier_span_m), e.shape)
     return jax.scipy.special.logsumexp(jnp.stack([log_los, log_nlos, log_out]), axis=0)
 
@@ -335,8 +383,11 @@ def _mixture_logpdf_bound(nb: _Numbers):
     """An upper bound of the mixture density's log (each component's density is bounded)."""
     s, lam = nb.sigma_r, 1.0 / nb.nlos_mean_m
     g = 1.0 / (s * jnp.sqrt(2 * jnp.pi))
-    bound = ((1.0 - nb.nlos_weight - nb.outlier_weight) * g + nb.nlos_weight * jnp.minimum(lam, g)
-             + nb.outlier_weight / nb.outlier_span_m)
+    bound = (
+        (1.0 - nb.nlos_weight - nb.outlier_weight) * g
+        + nb.nlos_weight * jnp.minimum(lam, g)
+        + nb.outlier_weight / nb.outlier_span_m
+    )
     return jnp.log(bound) + 1e-3  # strictly above: sqrt(rho) stays smooth
 
 
@@ -420,15 +471,70 @@ def _cost(state: _State, args) -> Array:
     return 0.5 * (jnp.sum(f * f) + pc * pc + jnp.sum(pb * pb))
 
 
+def _rows(state: _State, args):
+    """Every residual of `_residuals` with its local Jacobian and parameter indices (`SparseLevenbergMarquardt`).
+
+    A pair's residual depends on (x_i, x_j, c, b_i, b_j) only; the prior rows on c and on one b_k. Indices
+    are into `ravel_pytree(state)` = (x.ravel(), c, b).
+    """
+    obs, nb = args
+    m, dim = state.x.shape
+    sc, sb = _prior_scales(nb)
+
+    def pair(u, z, w):
+        xi, xj, c, bi, bj = u[:dim], u[dim : 2 * dim], u[2 * dim], u[2 * dim + 1], u[2 * dim + 2]
+        one = Observations(jnp.zeros(1, int), jnp.ones(1, int), z[None], w[None])
+        st = _State(jnp.stack([xi, xj]), c, jnp.stack([bi, bj]))
+        return (_sqrt_rho(_errors(st, one, nb), nb) * jnp.sqrt(one.w))[0]
+
+    u = jnp.concatenate(
+        [
+            state.x[obs.i],
+            state.x[obs.j],
+            jnp.broadcast_to(state.c, obs.i.shape)[:, None],
+            state.b[obs.i][:, None],
+            state.b[obs.j][:, None],
+        ],
+        axis=1,
+    )
+    f = jax.vmap(pair)(u, obs.z, obs.w)
+    g = jax.vmap(jax.jacfwd(pair))(u, obs.z, obs.w)
+    ax = jnp.arange(dim)
+    idx = jnp.concatenate(
+        [
+            obs.i[:, None] * dim + ax,
+            obs.j[:, None] * dim + ax,
+            jnp.full((obs.i.shape[0], 1), m * dim),
+            m * dim + 1 + obs.i[:, None],
+            m * dim + 1 + obs.j[:, None],
+        ],
+        axis=1,
+    )
+    n_loc = 2 * dim + 3
+    # prior rows: c / sc on the c column, b_k / sb on b_k's column (the other local entries are zero)
+    g_c = jnp.zeros((1, n_loc)).at[0, 2 * dim].set(1.0 / sc)
+    i_c = jnp.full((1, n_loc), m * dim)
+    g_b = jnp.zeros((m, n_loc)).at[:, 0].set(1.0 / sb)
+    i_b = jnp.broadcast_to((m * dim + 1 + jnp.arange(m))[:, None], (m, n_loc))
+    return (
+        jnp.concatenate([f, jnp.reshape(state.c / sc, (1,)), state.b / sb]),
+        jnp.concatenate([g, g_c, g_b]),
+        jnp.concatenate([idx, i_c, i_b]),
+    )
+
+
 def _solver(name: str, tol: float):
     if name == "gn":
         return optx.GaussNewton(rtol=tol, atol=tol)
-    return optx.LevenbergMarquardt(rtol=tol, atol=tol)
+    if name == "lm_dense":
+        return optx.LevenbergMarquardt(rtol=tol, atol=tol)
+    return SparseLevenbergMarquardt(rtol=tol, atol=tol, rows=_rows)
 
 
 @eqx.filter_jit
-def _initial_starts(d_pair: Array, w_pair: Array, key: Array, dim: int, init: str, n_starts: int,
-                    smacof_iters: int) -> Array:
+def _initial_starts(
+    d_pair: Array, w_pair: Array, key: Array, dim: int, init: str, n_starts: int, smacof_iters: int
+) -> Array:
     """(S, n, dim) start configurations from classical MDS, SMACOF and random SMACOF starts."""
     n = d_pair.shape[0]
     full = mds.complete_distances(jnp.where(w_pair > 0, d_pair, jnp.nan))
@@ -448,8 +554,9 @@ def _initial_starts(d_pair: Array, w_pair: Array, key: Array, dim: int, init: st
 
 
 @eqx.filter_jit
-def _fit_starts(y0s: _State, obs: Observations, nb: _Numbers, solver: str, tol: float, max_steps: int,
-                factors: Array | None = None):
+def _fit_starts(
+    y0s: _State, obs: Observations, nb: _Numbers, solver: str, tol: float, max_steps: int, factors: Array | None = None
+):
     """Refine every start (a batched `_State`; vmapped least squares); returns final states, costs and
     the outcome codes of their last fits (`jaxcal.solver.outcome`).
 
@@ -464,14 +571,15 @@ def _fit_starts(y0s: _State, obs: Observations, nb: _Numbers, solver: str, tol: 
     def one(y0):
         def stage(y, factor):
             nbk = eqx.tree_at(lambda t: t.sigma_r, nb, nb.sigma_r * factor)
-            sol = optx.least_squares(_residuals, _solver(solver, tol), y, (obs, nbk), max_steps=max_steps,
-                                     throw=False)
+            sol = optx.least_squares(_residuals, _solver(solver, tol), y, (obs, nbk), max_steps=max_steps, throw=False)
             return sol.value, S.outcome(sol)
 
         y, codes = jax.lax.scan(stage, y0, factors)
         return y, _cost(y, args), codes[-1]
 
-    return jax.vmap(one)(y0s)
+    # one start at a time: each stops at its own step count (a vmapped while loop runs every start as
+    # long as the slowest, and a batched scatter of the sparse normal equations is slow on CPU)
+    return jax.lax.map(one, y0s)
 
 
 def _procrustes_rmse(x: Array, ref: Array) -> Array:
@@ -484,16 +592,17 @@ def _procrustes_rmse(x: Array, ref: Array) -> Array:
 
 
 @eqx.filter_jit
-def offset_bootstrap(state: _State, obs: Observations, nb: _Numbers, key: Array, n_boot: int, solver: str,
-                     tol: float, max_steps: int) -> Array:
+def offset_bootstrap(
+    state: _State, obs: Observations, nb: _Numbers, key: Array, n_boot: int, solver: str, tol: float, max_steps: int
+) -> Array:
     """Predicted position error of fitting the common range offset c or leaving it out (`bias=auto`).
 
     A common offset is not always worth estimating: where the geometry is weak (e.g. nearly planar 3-D
     scenes) c trades off against the poorly determined directions, and the variance its estimate adds
     can exceed the bias of ignoring it. Which one wins is estimated by a residual bootstrap of the
     network fit: replicate observations are the fitted model plus residuals resampled with replacement
-    (inflated for the degrees of freedom the fit used up); each replicate is refitted locally (from the fit) with and without c, and the rigidly aligned
-    position RMSE against the fitted positions is averaged.
+    (inflated for the degrees of freedom the fit used up); each replicate is refitted locally (from the
+    fit) with and without c, and the rigidly aligned position RMSE against the fitted positions is averaged.
 
     Args:
         state: the network-offset fit (positions (m, D), c, b).
@@ -524,8 +633,9 @@ def offset_bootstrap(state: _State, obs: Observations, nb: _Numbers, key: Array,
         obs_b = Observations(obs.i, obs.j, zb, obs.w)
 
         def fit(y0, nbk):
-            sol = optx.least_squares(_residuals, _solver(solver, tol), y0, (obs_b, nbk), max_steps=max_steps,
-                                     throw=False)
+            sol = optx.least_squares(
+                _residuals, _solver(solver, tol), y0, (obs_b, nbk), max_steps=max_steps, throw=False
+            )
             return _procrustes_rmse(sol.value.x, state.x) ** 2, S.outcome(sol)
 
         return jax.tree.map(lambda *a: jnp.stack(a), fit(state, nb), fit(start_none, nb_none))
@@ -535,38 +645,18 @@ def offset_bootstrap(state: _State, obs: Observations, nb: _Numbers, key: Array,
 
 
 @eqx.filter_jit
-def _relocation_starts(state: _State, d: Array, w: Array, nb: _Numbers, grid_n: int) -> _State:
-    """(m,) batched starts: start k is `state` with node k moved to the grid point of least robust cost
-    of its own ranges (all other nodes fixed) outside the current node's neighbourhood."""
-    x = state.x
-    m, dim = x.shape
-    lo, hi = jnp.min(x, axis=0), jnp.max(x, axis=0)
-    margin = 0.25 * jnp.max(hi - lo)
-    axes = [jnp.linspace(lo[a] - margin, hi[a] + margin, grid_n) for a in range(dim)]
-    g = jnp.stack(jnp.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, dim)  # (G, dim)
-    dist = mds.pairwise_distances(jnp.concatenate([g, x], axis=0))[: g.shape[0], g.shape[0]:]  # (G, m)
-    # Score grid points with a loss no narrower than the grid spacing, or the true basin can be
-    # missed between two grid points; the refinement after the move uses the real scale.
-    spacing = (jnp.max(hi - lo) + 2 * margin) / (grid_n - 1)
-    nb_grid = eqx.tree_at(lambda t: t.sigma_r, nb, jnp.maximum(nb.sigma_r, spacing))
-
-    exclude = 3.0 * nb_grid.sigma_r
-
-    def best_point(k):
-        model = dist + nb.use_c * state.c + nb.use_b * (state.b[k] + state.b)[None, :]
-        cost = jnp.sum(w[k][None, :] * _rho(d[k][None, :] - model, nb_grid), axis=1)
-        # the best point of another basin: the current one is already a local optimum
-        near = jnp.linalg.norm(g - x[k], axis=1) < exclude
-        return g[jnp.argmin(jnp.where(near, jnp.inf, cost))]
-
-    moved = jax.vmap(best_point)(jnp.arange(m))  # (m, dim)
-    xs = jnp.where(jnp.eye(m, dtype=bool)[:, :, None], moved[None, :, :], x[None, :, :])
-    return _State(xs, jnp.broadcast_to(state.c, (m,)), jnp.broadcast_to(state.b, (m, m)))
-
-
-@eqx.filter_jit
-def _irls_all(y0: _State, obs: Observations, pair_i: Array, pair_j: Array, pair_of_obs: Array,
-              nb: _Numbers, solver: str, tol: float, max_steps: int, n_iter: int) -> _State:
+def _irls_all(
+    y0: _State,
+    obs: Observations,
+    pair_i: Array,
+    pair_j: Array,
+    pair_of_obs: Array,
+    nb: _Numbers,
+    solver: str,
+    tol: float,
+    max_steps: int,
+    n_iter: int,
+) -> _State:
     """Minimise the robust cost over every single range by iteratively reweighted least squares.
 
     With fixed weights w_k the cost of a pair's ranges, sum_k w_k (z_k - m)^2, equals
@@ -582,8 +672,9 @@ def _irls_all(y0: _State, obs: Observations, pair_i: Array, pair_j: Array, pair_
         wsum = jax.ops.segment_sum(w, pair_of_obs, n_pairs)
         zbar = jax.ops.segment_sum(w * obs.z, pair_of_obs, n_pairs) / jnp.maximum(wsum, 1e-300)
         pairs = Observations(pair_i, pair_j, zbar, wsum)
-        sol = optx.least_squares(_residuals, _solver(solver, tol), state, (pairs, nb.with_loss("l2")),
-                                 max_steps=max_steps, throw=False)
+        sol = optx.least_squares(
+            _residuals, _solver(solver, tol), state, (pairs, nb.with_loss("l2")), max_steps=max_steps, throw=False
+        )
         return sol.value, S.outcome(sol)
 
     state, codes = jax.lax.scan(step, y0, None, length=n_iter)
@@ -591,8 +682,9 @@ def _irls_all(y0: _State, obs: Observations, pair_i: Array, pair_j: Array, pair_
 
 
 @eqx.filter_jit
-def _pair_locations(state: _State, obs: Observations, pair_i: Array, pair_j: Array, pair_of_obs: Array,
-                    nb: _Numbers) -> Observations:
+def _pair_locations(
+    state: _State, obs: Observations, pair_i: Array, pair_j: Array, pair_of_obs: Array, nb: _Numbers
+) -> Observations:
     """One observation per pair: the IRLS-weighted mean of its ranges at `state` (the pair's robust
     location that the all-epochs fit uses), weight 1 (0 for padding)."""
     n_pairs = pair_i.shape[0]
@@ -602,30 +694,60 @@ def _pair_locations(state: _State, obs: Observations, pair_i: Array, pair_j: Arr
     return Observations(pair_i, pair_j, zbar, (wsum > 0).astype(zbar.dtype))
 
 
+def _error_rows(state: _State, obs: Observations, nb: _Numbers):
+    """Range errors e (M,) with their local Jacobians (M, 2D + 3) with respect to (x_i, x_j, c, b_i, b_j)
+    and those parameters' indices into `ravel_pytree(state)` = (x.ravel(), c, b)."""
+    m, dim = state.x.shape
+
+    def one(u, z):
+        st = _State(jnp.stack([u[:dim], u[dim : 2 * dim]]), u[2 * dim], u[2 * dim + 1 :])
+        return _errors(st, Observations(jnp.zeros(1, int), jnp.ones(1, int), z[None], jnp.ones(1)), nb)[0]
+
+    u = jnp.concatenate(
+        [
+            state.x[obs.i],
+            state.x[obs.j],
+            jnp.broadcast_to(state.c, obs.i.shape)[:, None],
+            state.b[obs.i][:, None],
+            state.b[obs.j][:, None],
+        ],
+        axis=1,
+    )
+    ax = jnp.arange(dim)
+    idx = jnp.concatenate(
+        [
+            obs.i[:, None] * dim + ax,
+            obs.j[:, None] * dim + ax,
+            jnp.full((obs.i.shape[0], 1), m * dim),
+            m * dim + 1 + obs.i[:, None],
+            m * dim + 1 + obs.j[:, None],
+        ],
+        axis=1,
+    )
+    return jax.vmap(one)(u, obs.z), jax.vmap(jax.grad(one))(u, obs.z), idx
+
+
 @eqx.filter_jit
-def _covariance(free: Array, template: Array, mask: Array, c: Array, b: Array, obs: Observations,
-                nb: _Numbers):
+def _covariance(free: Array, template: Array, mask: Array, c: Array, b: Array, obs: Observations, nb: _Numbers):
     """Covariance of the free position coordinates (plus offsets) in the anchor frame.
+
+    J^T W J is accumulated from each range's few nonzero derivatives (`sparse_lm.normal_equations`), so
+    memory follows the number of parameters squared, not ranges times parameters.
 
     Returns (cov of free coordinates (F, F), residual sigma^2 [m^2]).
     """
+    m, dim = template.shape
     idx = jnp.nonzero(mask.ravel(), size=free.shape[0])[0]
-
-    def errs(theta):
-        xf, cc, bb = theta
-        x = template.ravel().at[idx].set(xf).reshape(template.shape)
-        return _errors(_State(x, cc, bb), obs, nb)
-
-    theta = (free, c, b)
-    e = errs(theta)
-    jac = jax.jacfwd(errs)(theta)
+    x = template.ravel().at[idx].set(free).reshape(template.shape)
+    e, g, gi = _error_rows(_State(x, c, b), obs, nb)
     n_b = b.shape[0]
-    j = jnp.concatenate([jac[0], jac[1][:, None], jac[2]], axis=1)  # (M, F + 1 + n)
     w = _irls_weight(e, nb) * obs.w
     n_par = free.shape[0] + nb.use_c + nb.use_b * n_b
     dof = jnp.maximum(jnp.sum(obs.w) - n_par, 1.0)
     s2 = jnp.sum(w * e * e) / dof
-    h = (j.T * w) @ j / s2
+    h_all, _ = normal_equations(e, g * jnp.sqrt(w / s2)[:, None], gi, m * dim + 1 + n_b, chunk=1 << 16)
+    sel = jnp.concatenate([idx, m * dim + jnp.arange(1 + n_b)])  # (free coordinates, c, b)
+    h = h_all[sel][:, sel]
     # Unused offsets are pinned by a stiff prior; per-node offsets get their Gaussian prior.
     sc, sb = _prior_scales(nb)
     prior = jnp.concatenate([jnp.zeros(free.shape[0]), jnp.stack([1.0 / sc**2]), jnp.full(n_b, 1.0 / sb**2)])
@@ -670,7 +792,7 @@ def _pair_jacobian(theta: Array, template: Array, mask: Array, obs: Observations
 
     def errs(th):
         x = template.ravel().at[idx].set(th[:n_f]).reshape(template.shape)
-        return _errors(_State(x, th[n_f], th[n_f + 1:]), obs, nb)
+        return _errors(_State(x, th[n_f], th[n_f + 1 :]), obs, nb)
 
     real = obs.w > 0
     return jnp.where(real, errs(theta), 0.0), jax.jacfwd(errs)(theta) * real[:, None]
@@ -700,8 +822,19 @@ def _split_rhat(s1: Array, s2: Array, n: int) -> Array:
 
 
 @eqx.filter_jit
-def posterior_mean(free: Array, template: Array, mask: Array, c: Array, b: Array, obs: Observations,
-                   nb: _Numbers, key: Array, nu: Array, n_chains: int, n_steps: int):
+def posterior_mean(
+    free: Array,
+    template: Array,
+    mask: Array,
+    c: Array,
+    b: Array,
+    obs: Observations,
+    nb: _Numbers,
+    key: Array,
+    nu: Array,
+    n_chains: int,
+    n_steps: int,
+):
     """Posterior mean and covariance of the free frame coordinates (and offsets) (`estimate=mean`).
 
     The least-squares / robust fit is the posterior *mode*. Where the geometry is weak (a direction the
@@ -733,7 +866,7 @@ def posterior_mean(free: Array, template: Array, mask: Array, c: Array, b: Array
 
     def errs(theta):
         x = template.ravel().at[idx].set(theta[:f]).reshape(template.shape)
-        return _errors(_State(x, theta[f], theta[f + 1:]), obs, nb)
+        return _errors(_State(x, theta[f], theta[f + 1 :]), obs, nb)
 
     real = obs.w > 0
     e0 = errs(theta0)
@@ -791,8 +924,9 @@ def posterior_mean(free: Array, template: Array, mask: Array, c: Array, b: Array
 
         zeros = jnp.zeros((n_chains, p_dim))
         carry = (carry[0], carry[1], carry[2], jnp.zeros(n_chains))
-        (carry, s1, s2, outer), _ = jax.lax.scan(body, (carry, zeros, zeros, jnp.zeros((p_dim, p_dim))),
-                                                 jax.random.split(k, n))
+        (carry, s1, s2, outer), _ = jax.lax.scan(
+            body, (carry, zeros, zeros, jnp.zeros((p_dim, p_dim))), jax.random.split(k, n)
+        )
         return carry, s1, s2, outer
 
     def moments(s1, outer, n):
@@ -808,8 +942,7 @@ def posterior_mean(free: Array, template: Array, mask: Array, c: Array, b: Array
     k0, kb1, kb2, ka, kc = jax.random.split(key, 5)
     root = sqrt_cov(jnp.linalg.inv(info))
     u0 = 0.1 * jax.random.normal(k0, (n_chains, p_dim))
-    carry = (u0, jax.vmap(lambda v: logp(theta0 + root @ v))(u0), jnp.asarray(0.5 / p_dim**0.25),
-             jnp.zeros(n_chains))
+    carry = (u0, jax.vmap(lambda v: logp(theta0 + root @ v))(u0), jnp.asarray(0.5 / p_dim**0.25), jnp.zeros(n_chains))
     burn1 = n_steps // 8
     burn2 = n_steps // 4 - burn1
     carry, s1, _, outer = run(carry, kb1, burn1, theta0, root, True)
@@ -832,8 +965,16 @@ def posterior_mean(free: Array, template: Array, mask: Array, c: Array, b: Array
 # Public entry points
 
 
-def posterior_defect(i: np.ndarray, j: np.ndarray, n_nodes: int, dim: int, nu: float, n_offsets: int,
-                     node_ids: tuple[str, ...], seed: int = 0) -> str:
+def posterior_defect(
+    i: np.ndarray,
+    j: np.ndarray,
+    n_nodes: int,
+    dim: int,
+    nu: float,
+    n_offsets: int,
+    node_ids: tuple[str, ...],
+    seed: int = 0,
+) -> str:
     """Why the pair-level posterior of `estimate=mean` cannot be sampled, from the measurement graph
     alone ("" when it can). Decided before sampling, so the fallback does not hang on a chain's path.
 
@@ -855,7 +996,9 @@ def posterior_defect(i: np.ndarray, j: np.ndarray, n_nodes: int, dim: int, nu: f
     Returns:
         A one-line reason, or "".
     """
-    pairs = {(min(a, b), max(a, b)) for a, b in zip(np.asarray(i).tolist(), np.asarray(j).tolist(), strict=False) if a != b}
+    pairs = {
+        (min(a, b), max(a, b)) for a, b in zip(np.asarray(i).tolist(), np.asarray(j).tolist(), strict=False) if a != b
+    }
     nbrs = [set() for _ in range(n_nodes)]
     for a, b in pairs:
         nbrs[a].add(b)
@@ -863,8 +1006,10 @@ def posterior_defect(i: np.ndarray, j: np.ndarray, n_nodes: int, dim: int, nu: f
     for k in range(n_nodes):
         if len(nbrs[k]) * (nu + 1.0) <= dim:
             names = ", ".join(node_ids[q] for q in sorted(nbrs[k]))
-            return (f"{node_ids[k]} ranges only {names}: its posterior under the Student-t likelihood "
-                    f"(nu={nu:g}) is improper")
+            return (
+                f"{node_ids[k]} ranges only {names}: its posterior under the Student-t likelihood "
+                f"(nu={nu:g}) is improper"
+            )
     n_unknown = dim * n_nodes - dim * (dim + 1) // 2
     if len(pairs) < n_unknown + n_offsets:
         return f"{len(pairs)} measured pairs for {n_unknown + n_offsets} unknowns"
@@ -872,8 +1017,8 @@ def posterior_defect(i: np.ndarray, j: np.ndarray, n_nodes: int, dim: int, nu: f
     rig = np.zeros((len(pairs), n_nodes * dim))
     for row, (a, b) in enumerate(sorted(pairs)):
         u = (x[a] - x[b]) / np.linalg.norm(x[a] - x[b])
-        rig[row, a * dim:(a + 1) * dim] = u
-        rig[row, b * dim:(b + 1) * dim] = -u
+        rig[row, a * dim : (a + 1) * dim] = u
+        rig[row, b * dim : (b + 1) * dim] = -u
     if np.linalg.matrix_rank(rig) < n_unknown:
         return "the measured pairs do not make the network rigid (it can flex without changing a range)"
     return ""
@@ -910,6 +1055,50 @@ def _active_nodes(i: np.ndarray, j: np.ndarray, n: int, a0: int) -> np.ndarray:
     return seen
 
 
+def _pair_matrix(obs: Observations, m: int) -> np.ndarray:
+    """(m, m) symmetric weights of the measured pairs (0 = not measured) of one-per-pair observations."""
+    w = np.zeros((m, m))
+    oi, oj, ow = np.asarray(obs.i), np.asarray(obs.j), np.asarray(obs.w)
+    w[oi, oj] = w[oj, oi] = np.where(ow > 0, ow, w[oi, oj])
+    return w
+
+
+def _sqrt_rho_of(nb: _Numbers, e: Array) -> Array:
+    return _sqrt_rho(e, nb)
+
+
+def _rho_of(nb: _Numbers, e: Array) -> Array:
+    return _rho(e, nb)
+
+
+def _relocation_candidates(state: _State, table, nb: _Numbers, grid_n: int, n_cand: int) -> _State:
+    """Batched starts of one relocation round: `state` with one node moved to another basin, for the
+    `n_cand` nodes whose locally refined move lowers the total cost most (every node when m <= n_cand)."""
+    m = state.x.shape[0]
+    nbr, d_nbr, w_nbr = (jnp.asarray(a) for a in table)
+    # Score grid points with a loss no narrower than the grid spacing, or the true basin can be missed
+    # between two grid points; the refinement after the move uses the real scale.
+    lo, hi = jnp.min(state.x, axis=0), jnp.max(state.x, axis=0)
+    spacing = 1.5 * jnp.max(hi - lo) / (grid_n - 1)  # grid span: the scene plus a quarter on either side
+    nb_grid = eqx.tree_at(lambda t: t.sigma_r, nb, jnp.maximum(nb.sigma_r, spacing))
+    offset = nb.use_c * state.c + nb.use_b * (state.b[:, None] + state.b[nbr])
+    moved, delta = relocation_moves(
+        state.x,
+        offset,
+        nbr,
+        d_nbr,
+        w_nbr,
+        jax.tree_util.Partial(_rho_of, nb_grid),
+        jax.tree_util.Partial(_sqrt_rho_of, nb),
+        grid_n,
+        3.0 * nb_grid.sigma_r,
+    )
+    delta = np.where(np.isfinite(np.asarray(delta)), np.asarray(delta), np.inf)
+    pick = np.arange(m) if m <= n_cand else np.argsort(delta, kind="stable")[:n_cand]
+    xs = jnp.repeat(state.x[None], pick.size, axis=0).at[np.arange(pick.size), pick].set(moved[pick])
+    return _State(xs, jnp.broadcast_to(state.c, (pick.size,)), jnp.broadcast_to(state.b, (pick.size, m)))
+
+
 def stage_count(params: BatchParams) -> int:
     """Stages `solve` reports to its `progress` callback: multi-start fit, relocation, offset choice
     (bias=auto), all-ranges refinement (summary=all), covariance, posterior sampler (estimate=mean)."""
@@ -918,10 +1107,14 @@ def stage_count(params: BatchParams) -> int:
 
 
 @in_float64
-def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParams | None = None,
-          node_ids: tuple[str, ...] | None = None,
-          extra_starts: np.ndarray | None = None,
-          progress: Callable[[int], None] | None = None) -> BatchSolution:
+def solve(
+    range_m: np.ndarray,
+    anchors: tuple[int, int, int],
+    params: BatchParams | None = None,
+    node_ids: tuple[str, ...] | None = None,
+    extra_starts: np.ndarray | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> BatchSolution:
     """Robust batch fit of static node positions from a range stream.
 
     Args:
@@ -967,8 +1160,12 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     def to_obs(i, j, z, w):
         keep = active[i] & active[j]
         size = _bucket(int(keep.sum()))
-        return Observations(*(jnp.asarray(_pad(a, size)) for a in (
-            remap[i[keep]], remap[j[keep]], z[keep].astype(float), w[keep].astype(float))))
+        return Observations(
+            *(
+                jnp.asarray(_pad(a, size))
+                for a in (remap[i[keep]], remap[j[keep]], z[keep].astype(float), w[keep].astype(float))
+            )
+        )
 
     obs_med = to_obs(i_m, j_m, z_m, w_m)
     d_pair = np.full((m, m), np.nan)
@@ -979,12 +1176,10 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     w_pair = np.isfinite(d_pair).astype(float)
     nb = _Numbers.of(p)
     key = jax.random.PRNGKey(p.seed)
-    # at least m - 2 random starts, so that the relocation below (m starts) has the same batch size
-    n_random = max(p.n_starts, m - 2) if p.init == "multi" and p.relocate_rounds > 0 else p.n_starts
-    x0s = _initial_starts(jnp.asarray(np.nan_to_num(d_pair)), jnp.asarray(w_pair), key, p.dim, p.init,
-                          n_random, p.smacof_iters)
-    if x0s.shape[0] < m and p.relocate_rounds > 0:  # init=cmds or smacof: pad with copies
-        x0s = jnp.concatenate([x0s, x0s[:1].repeat(m - x0s.shape[0], axis=0)])
+    # a fixed number of starts whatever N: relocation (below) repairs the nodes that no start placed well
+    x0s = _initial_starts(
+        jnp.asarray(np.nan_to_num(d_pair)), jnp.asarray(w_pair), key, p.dim, p.init, p.n_starts, p.smacof_iters
+    )
     if extra_starts is not None:
         x0s = jnp.concatenate([x0s, jnp.asarray(_extra_starts(extra_starts, sub, np.asarray(x0s[0]), p.dim))])
     s_count = x0s.shape[0]
@@ -996,14 +1191,15 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     state, code = jax.tree.map(lambda a: a[best], states), fit_codes[best]  # code: of the fit `state` is
     cost = float(costs[best])
     done(1)
-    d_j, w_j = jnp.asarray(np.nan_to_num(d_pair)), jnp.asarray(w_pair)
     grid_n = p.relocate_grid if p.dim == 2 else max(p.relocate_grid // 3, 2)
+    table = neighbour_table(d_pair, _pair_matrix(obs_med, m))
     for _ in range(p.relocate_rounds):
-        starts = _relocation_starts(state, d_j, w_j, nb, grid_n)
-        # same batch size and stage count as the multi-start fit: one compilation serves both
-        starts = jax.tree.map(lambda a: jnp.concatenate([a, a[:1].repeat(s_count - m, axis=0)]), starts)
-        moved, moved_costs, moved_codes = _fit_starts(starts, obs_med, nb, p.solver, p.tol, p.max_steps,
-                                                      jnp.ones_like(gnc))
+        starts = _relocation_candidates(state, table, nb, grid_n, p.relocate_candidates)
+        if starts.x.shape[0] < s_count:  # same batch size as the multi-start fit: one compilation serves both
+            starts = jax.tree.map(lambda a: jnp.concatenate([a, a[:1].repeat(s_count - a.shape[0], axis=0)]), starts)
+        moved, moved_costs, moved_codes = _fit_starts(
+            starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc)
+        )
         moved_costs = np.where(np.isfinite(np.asarray(moved_costs)), np.asarray(moved_costs), np.inf)
         k = int(np.argmin(moved_costs))
         if not moved_costs[k] < cost - 1e-9 * max(1.0, abs(cost)):
@@ -1012,8 +1208,12 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     done(1)
     chosen, boot, boot_codes = ("network" if p.bias == "auto" else p.bias), np.full(2, np.nan), np.zeros(0)
     if p.bias == "auto":
-        boot, boot_codes = (np.asarray(a) for a in offset_bootstrap(
-            state, obs_med, nb, jax.random.fold_in(key, 7), p.n_boot, p.solver, p.tol, p.max_steps))
+        boot, boot_codes = (
+            np.asarray(a)
+            for a in offset_bootstrap(
+                state, obs_med, nb, jax.random.fold_in(key, 7), p.n_boot, p.solver, p.tol, p.max_steps
+            )
+        )
         if boot[1] < boot[0]:  # leaving the offset out is predicted to place the nodes better
             chosen = "none"
             nb = eqx.tree_at(lambda t: t.use_c, nb, jnp.zeros_like(nb.use_c))
@@ -1031,8 +1231,9 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         uniq, pair_of_obs = np.unique(key_pair, return_inverse=True)
         size = _bucket(uniq.size)
         pair_i, pair_j = jnp.asarray(_pad(uniq // m, size)), jnp.asarray(_pad(uniq % m, size))
-        state, code = _irls_all(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb, p.solver, p.tol,
-                                p.max_steps, p.irls_iters)
+        state, code = _irls_all(
+            state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb, p.solver, p.tol, p.max_steps, p.irls_iters
+        )
         if p.estimate == "mean":  # the posterior's pair observations: where the all-ranges fit puts them
             obs_pairs = _pair_locations(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb)
         jax.block_until_ready(state.x)
@@ -1056,8 +1257,9 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         mask[remap[a2], 2] = False
     x_frame_sub[~mask] = 0.0
     free = x_frame_sub[mask]
-    cov_free, s2 = _covariance(jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c,
-                               state.b, obs, nb)
+    cov_free, s2 = _covariance(
+        jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c, state.b, obs, nb
+    )
     cov_free = np.asarray(cov_free)
     done(1)
     cov_model = cov_free
@@ -1068,15 +1270,25 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
         reason = posterior_defect(mi, mj, m, p.dim, p.student_nu, n_off, tuple(ids[k] for k in sub), p.seed)
     if p.estimate == "mean" and not reason:
         mean, cov_s, acc, rh = posterior_mean(
-            jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c, state.b, obs_pairs, nb,
-            jax.random.fold_in(key, 11), jnp.asarray(float(p.student_nu)), p.mcmc_chains, p.mcmc_steps)
+            jnp.asarray(free),
+            jnp.asarray(x_frame_sub),
+            jnp.asarray(mask),
+            state.c,
+            state.b,
+            obs_pairs,
+            nb,
+            jax.random.fold_in(key, 11),
+            jnp.asarray(float(p.student_nu)),
+            p.mcmc_chains,
+            p.mcmc_steps,
+        )
         f = free.size
         mean, cov_s = np.asarray(mean), np.asarray(cov_s)
         accept, rhat = float(acc), float(rh)
         done(1)
         if rhat <= RHAT_MAX and np.isfinite(mean).all() and np.isfinite(cov_s).all():
             x_frame_sub[mask] = mean[:f]
-            cov_model, offset, node_b = cov_s[:f, :f], float(mean[f]), mean[f + 1:]
+            cov_model, offset, node_b = cov_s[:f, :f], float(mean[f]), mean[f + 1 :]
             used = "mean"
         else:
             reason = f"the posterior chains did not mix (split R-hat {rhat:.2f}, limit {RHAT_MAX:.2f})"
@@ -1084,8 +1296,9 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     # pair medians (they do not depend on the fit), each pair weighted as the fit weighs its ranges.
     at = _State(jnp.asarray(x_frame_sub), jnp.asarray(offset), jnp.asarray(node_b))
     theta = jnp.concatenate([jnp.asarray(x_frame_sub[mask]), jnp.reshape(at.c, (1,)), at.b])
-    e_pair, jac_pair = (np.asarray(a) for a in _pair_jacobian(theta, jnp.asarray(x_frame_sub), jnp.asarray(mask),
-                                                               obs_med, nb))
+    e_pair, jac_pair = (
+        np.asarray(a) for a in _pair_jacobian(theta, jnp.asarray(x_frame_sub), jnp.asarray(mask), obs_med, nb)
+    )
     w_obs = np.asarray(_range_weights(at, obs, nb))
     oi, oj = np.asarray(obs.i), np.asarray(obs.j)
     w_key = np.bincount(np.minimum(oi, oj) * m + np.maximum(oi, oj), weights=w_obs, minlength=m * m)
@@ -1094,15 +1307,23 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     sc, sb = _prior_scales(nb)
     prior = np.concatenate([np.zeros(free.size), [1.0 / float(sc) ** 2], np.full(m, 1.0 / float(sb) ** 2)])
     ok = w_pair > 0
-    cov_pair, _ = pair_covariance(jac_pair[:n_real][ok], e_pair[:n_real][ok], w_pair[ok],
-                                  pair_spread(r, sub[mi[ok]], sub[mj[ok]]), mi[ok], mj[ok], m, prior)
-    cov_free = covariance_union(cov_model, cov_pair[:free.size, :free.size])
+    cov_pair, _ = pair_covariance(
+        jac_pair[:n_real][ok],
+        e_pair[:n_real][ok],
+        w_pair[ok],
+        pair_spread(r, sub[mi[ok]], sub[mj[ok]]),
+        mi[ok],
+        mj[ok],
+        m,
+        prior,
+    )
+    cov_free = covariance_union(cov_model, cov_pair[: free.size, : free.size])
     full_idx = np.flatnonzero(mask.ravel())
 
     def per_node(cov_f):  # (F, F) over the free coordinates -> (N, D, D) blocks, NaN where undefined
         cov_all = np.zeros((m * p.dim, m * p.dim))
         cov_all[np.ix_(full_idx, full_idx)] = cov_f
-        blocks = np.stack([cov_all[k * p.dim:(k + 1) * p.dim, k * p.dim:(k + 1) * p.dim] for k in range(m)])
+        blocks = np.stack([cov_all[k * p.dim : (k + 1) * p.dim, k * p.dim : (k + 1) * p.dim] for k in range(m)])
         blocks = 0.5 * (blocks + np.swapaxes(blocks, 1, 2))
         blocks[~np.isfinite(blocks).all(axis=(1, 2))] = np.nan
         out = np.full((n, p.dim, p.dim), np.nan)
@@ -1115,11 +1336,21 @@ def solve(range_m: np.ndarray, anchors: tuple[int, int, int], params: BatchParam
     node_off = np.full(n, np.nan)
     node_off[sub] = node_b if chosen == "node" else 0.0
     return BatchSolution(
-        position=position, covariance=covariance,
-        offset_m=offset if chosen != "none" else 0.0, node_offset_m=node_off,
-        cost=cost, start_costs=costs, residual_sigma_m=float(np.sqrt(s2)), bias=chosen, boot_rmse_m=boot,
-        mcmc_accept=accept, mcmc_rhat=rhat, estimate=used, fallback_reason=reason,
-        model_covariance=per_node(cov_model), solver_codes=np.append(np.asarray(code), boot_codes).astype(int),
+        position=position,
+        covariance=covariance,
+        offset_m=offset if chosen != "none" else 0.0,
+        node_offset_m=node_off,
+        cost=cost,
+        start_costs=costs,
+        residual_sigma_m=float(np.sqrt(s2)),
+        bias=chosen,
+        boot_rmse_m=boot,
+        mcmc_accept=accept,
+        mcmc_rhat=rhat,
+        estimate=used,
+        fallback_reason=reason,
+        model_covariance=per_node(cov_model),
+        solver_codes=np.append(np.asarray(code), boot_codes).astype(int),
     )
 
 
@@ -1130,8 +1361,9 @@ def _extra_starts(starts: np.ndarray, sub: np.ndarray, base: np.ndarray, dim: in
         ex = ex[None]
     ex = ex[:, sub, :dim]
     if ex.shape[-1] < dim:  # 2-D modes for a 3-D fit: z from the MDS start
-        ex = np.concatenate([ex, np.broadcast_to(base[None, :, ex.shape[-1]:], ex.shape[:2] + (dim - ex.shape[-1],))],
-                            axis=-1)
+        ex = np.concatenate(
+            [ex, np.broadcast_to(base[None, :, ex.shape[-1] :], ex.shape[:2] + (dim - ex.shape[-1],))], axis=-1
+        )
     ex = np.where(np.isfinite(ex), ex, base[None])
     mirror = ex.copy()
     mirror[..., 1] *= -1.0
@@ -1147,7 +1379,9 @@ def warn_if_unmixed(sol: BatchSolution, p: BatchParams) -> bool:
         hint = f"raise mcmc_steps (now {p.mcmc_steps}) or add ranges"
     logging.getLogger("jaxcal").warning(
         "batch: %s: reporting the fit (estimate=map) and its covariance instead; %s",
-        sol.fallback_reason or "the posterior mean is not available", hint)
+        sol.fallback_reason or "the posterior mean is not available",
+        hint,
+    )
     return True
 
 
@@ -1159,8 +1393,9 @@ def check_solver(sol: BatchSolution, p: BatchParams, method: str = "batch") -> S
     return rep
 
 
-def calibrate(dataset: MeshDataset, params=None, config: str | None = None,
-              progress: Callable[[int], None] | None = None) -> Result:
+def calibrate(
+    dataset: MeshDataset, params=None, config: str | None = None, progress: Callable[[int], None] | None = None
+) -> Result:
     """`--method batch`: robust batch calibration of a static mesh (see the module docstring).
 
     Args:
@@ -1185,9 +1420,14 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None,
     outcome = check_solver(sol, p)
     p = eqx.tree_at(lambda q: (q.bias, q.estimate), p, (sol.bias, sol.estimate))  # record what was used
     res = Result(
-        ids=dataset.node_ids, position=sol.position, method="batch", dataset=dataset.name,
-        frame="anchors:" + ",".join(str(a) for a in anchors), params={**as_dict(p), **outcome.params()},
-        covariance=sol.covariance, software=f"jaxcal {__version__}",
+        ids=dataset.node_ids,
+        position=sol.position,
+        method="batch",
+        dataset=dataset.name,
+        frame="anchors:" + ",".join(str(a) for a in anchors),
+        params={**as_dict(p), **outcome.params()},
+        covariance=sol.covariance,
+        software=f"jaxcal {__version__}",
     )
     # nodes the measured graph cannot fix (one neighbour, a flexible part) become NaN rows + a warning
     return identify.mask_result(res, dataset.range)
