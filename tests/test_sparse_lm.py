@@ -64,9 +64,12 @@ def test_sparse_lm_reaches_the_optimum_of_optimistix_dense_lm(rng, loss):
         jnp.zeros((3, x.shape[0])),
     )
     gnc = jnp.asarray([4.0, 2.0, 1.0])
-    sp, c_sp = B._fit_starts(y0, obs, nb, "lm", 1e-10, 300, gnc)
-    de, c_de = B._fit_starts(y0, obs, nb, "lm_dense", 1e-10, 300, gnc)
+    sp, c_sp, code_sp = B._fit_starts(y0, obs, nb, "lm", 1e-10, 300, gnc)
+    de, c_de, _ = B._fit_starts(y0, obs, nb, "lm_dense", 1e-10, 300, gnc)
     np.testing.assert_allclose(c_sp, c_de, rtol=1e-8)
+    from jaxcal import solver
+
+    assert (np.asarray(code_sp) == solver.CONVERGED).all()  # what batch reports (`jaxcal.solver`)
     for k in range(3):
         assert float(B._procrustes_rmse(sp.x[k], de.x[k])) < 1e-6
         np.testing.assert_allclose(sp.c[k], de.c[k], atol=1e-6)
