@@ -53,9 +53,9 @@ def test_readme_starts_with_the_two_commands():
     assert lines[3] == "```"
 
 
-def test_ci_runs_the_tests_first_then_the_docs():
+def test_ci_runs_the_tests_first_then_lint_then_the_docs():
     steps = [s for s in (ROOT / ".ci" / "run").read_text().splitlines() if s.startswith("bash ")]
-    assert steps[:2] == ["bash scripts/test.sh", "bash scripts/docs.sh"]
+    assert steps == ["bash scripts/test.sh", "bash scripts/lint.sh", "bash scripts/docs.sh"]
 
 
 def _nav_files(node):
