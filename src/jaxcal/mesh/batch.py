@@ -487,29 +487,9 @@ def _rows(state: _State, args):
         st = _State(jnp.stack([xi, xj]), c, jnp.stack([bi, bj]))
         return (_sqrt_rho(_errors(st, one, nb), nb) * jnp.sqrt(one.w))[0]
 
-    u = jnp.concatenate(
-        [
-            state.x[obs.i],
-            state.x[obs.j],
-            jnp.broadcast_to(state.c, obs.i.shape)[:, None],
-            state.b[obs.i][:, None],
-            state.b[obs.j][:, None],
-        ],
-        axis=1,
-    )
+    u, idx = _local_params(state, obs)
     f = jax.vmap(pair)(u, obs.z, obs.w)
     g = jax.vmap(jax.jacfwd(pair))(u, obs.z, obs.w)
-    ax = jnp.arange(dim)
-    idx = jnp.concatenate(
-        [
-            obs.i[:, None] * dim + ax,
-            obs.j[:, None] * dim + ax,
-            jnp.full((obs.i.shape[0], 1), m * dim),
-            m * dim + 1 + obs.i[:, None],
-            m * dim + 1 + obs.j[:, None],
-        ],
-        axis=1,
-    )
     n_loc = 2 * dim + 3
     # prior rows: c / sc on the c column, b_k / sb on b_k's column (the other local entries are zero)
     g_c = jnp.zeros((1, n_loc)).at[0, 2 * dim].set(1.0 / sc)
@@ -694,15 +674,10 @@ def _pair_locations(
     return Observations(pair_i, pair_j, zbar, (wsum > 0).astype(zbar.dtype))
 
 
-def _error_rows(state: _State, obs: Observations, nb: _Numbers):
-    """Range errors e (M,) with their local Jacobians (M, 2D + 3) with respect to (x_i, x_j, c, b_i, b_j)
-    and those parameters' indices into `ravel_pytree(state)` = (x.ravel(), c, b)."""
+def _local_params(state: _State, obs: Observations):
+    """Each observation's own parameters u (M, 2D + 3) = (x_i, x_j, c, b_i, b_j) and their indices
+    (M, 2D + 3) into `ravel_pytree(state)` = (x.ravel(), c, b): the sparse rows of the Jacobian."""
     m, dim = state.x.shape
-
-    def one(u, z):
-        st = _State(jnp.stack([u[:dim], u[dim : 2 * dim]]), u[2 * dim], u[2 * dim + 1 :])
-        return _errors(st, Observations(jnp.zeros(1, int), jnp.ones(1, int), z[None], jnp.ones(1)), nb)[0]
-
     u = jnp.concatenate(
         [
             state.x[obs.i],
@@ -724,6 +699,19 @@ def _error_rows(state: _State, obs: Observations, nb: _Numbers):
         ],
         axis=1,
     )
+    return u, idx
+
+
+def _error_rows(state: _State, obs: Observations, nb: _Numbers):
+    """Range errors e (M,) with their local Jacobians (M, 2D + 3) with respect to (x_i, x_j, c, b_i, b_j)
+    and those parameters' indices into `ravel_pytree(state)` = (x.ravel(), c, b)."""
+    dim = state.x.shape[1]
+
+    def one(u, z):
+        st = _State(jnp.stack([u[:dim], u[dim : 2 * dim]]), u[2 * dim], u[2 * dim + 1 :])
+        return _errors(st, Observations(jnp.zeros(1, int), jnp.ones(1, int), z[None], jnp.ones(1)), nb)[0]
+
+    u, idx = _local_params(state, obs)
     return jax.vmap(one)(u, obs.z), jax.vmap(jax.grad(one))(u, obs.z), idx
 
 
