@@ -50,6 +50,10 @@ class TrajectoryParams(eqx.Module):
         planar_tol_m, planar_ratio: an anchor's tag positions count as planar when their z standard
             deviation is below planar_tol_m [m] or below planar_ratio x their horizontal one.
         side: +1 anchors above the platform plane, -1 below (planar case only).
+        mirror_z, mirror_min_sep_m: the mirror-image check (`jaxcal.trajectory.mirror`): a fit on the
+            other side of the path's plane that converges more than mirror_min_sep_m [m] away is compared
+            with the estimate; within mirror_z cluster-robust standard deviations the height is left NaN,
+            below -mirror_z the other side replaces the estimate (mirror_z = 0: no check).
         order, knot_dt_s, max_gap_s: pose B-spline (order 4 = cubic; 0 = automatic).
         time_offset_s, estimate_offset, max_offset_s: pose minus range clock offset [s] and its search.
     """
@@ -59,6 +63,8 @@ class TrajectoryParams(eqx.Module):
     planar_tol_m: float = 0.3
     planar_ratio: float = 0.05
     side: float = 1.0
+    mirror_z: float = 2.0
+    mirror_min_sep_m: float = 0.25
     order: int = 4
     knot_dt_s: float = 0.0
     max_gap_s: float = 0.0
@@ -147,9 +153,10 @@ def unobservable_height(groups, est: np.ndarray, p) -> tuple[np.ndarray, np.ndar
     `p.planar_tol_m`, `p.planar_ratio`) and a height-to-horizontal DOP ratio (`height_dop_ratio`) above
     `p.max_height_dop`. Returns ((A,) bool, (A,) z spread of the tag positions [m]).
 
-    Not caught (measured on simulated ground-vehicle campaigns): an anchor fitted on the wrong side of a
-    gently sloping path (its mirror image), whose ranges differ too little to be told apart by a simple
-    test; a robust mirror-cost comparison flagged right and wrong sides alike and was left out."""
+    Not caught here: an anchor fitted on the wrong side of a path that is not flat but nearly planar (a
+    gently sloping road), the mirror image through the path's local plane. `finish` checks that next
+    (`jaxcal.trajectory.mirror.compare_sides`: a refit from the mirror image and a likelihood-ratio test with
+    a cluster-robust variance) and leaves such a height NaN too when the two sides fit alike."""
     pos, mask = np.asarray(groups.position), np.asarray(groups.mask)
     out = np.zeros(est.shape[0], dtype=bool)
     zstd = np.full(est.shape[0], np.nan)
@@ -175,8 +182,11 @@ def report_fits(method: str, codes, groups, p, hint: str):
 
 def finish(dataset, method, p, groups, est, cov, info, solver=None) -> Result:
     """Build the Result: NaN rows for anchors with fewer than `p.min_ranges` ranges or failed fits; a NaN
-    height (the rest kept, one warning line) for anchors whose height the path cannot observe. `solver`
-    (a `jaxcal.solver.SolverReport`) adds `solver_status` and `solver_failed` to the params."""
+    height (the rest kept, one warning line) for anchors whose height the path cannot observe
+    (`unobservable_height`) and for anchors the ranges cannot tell from their mirror image through the
+    path (`jaxcal.trajectory.mirror.compare_sides`, which also moves an anchor to the other side where that
+    fits clearly better). `solver` (a `jaxcal.solver.SolverReport`) adds `solver_status` and
+    `solver_failed` to the params."""
     from jaxcal import __version__
 
     est = np.array(est, dtype=float)
@@ -201,7 +211,34 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None) -> Result:
             len(names),
             ", ".join(names[:8]) + (", ..." if len(names) > 8 else ""),
         )
-    info = dict(info, unobservable_height=[dataset.anchor_ids[a] for a in np.flatnonzero(flat)])
+    from jaxcal.trajectory.mirror import compare_sides
+
+    sides = compare_sides(groups, est, cov, p)
+    est, cov = sides.position, sides.covariance
+    ids = dataset.anchor_ids
+    if sides.ambiguous.any():
+        amb = np.flatnonzero(sides.ambiguous)
+        apart = np.abs(sides.other[amb, 2] - est[amb, 2])
+        est[amb, 2] = np.nan
+        cov[amb, 2, :] = np.nan
+        cov[amb, :, 2] = np.nan
+        logging.getLogger("jaxcal").warning(
+            "%s: the ranges cannot tell %d anchor(s) (%s) from their mirror image through the path "
+            "(both sides fit alike: |z| <= %g, height %s m apart); left NaN, horizontal kept and widened "
+            "to both sides; survey the heights or record a path that climbs near them",
+            method,
+            amb.size,
+            ", ".join(ids[a] for a in amb[:8]) + (", ..." if amb.size > 8 else ""),
+            p.mirror_z,
+            "/".join(f"{v:.1f}" for v in apart[:8]),
+        )
+    info = dict(
+        info,
+        unobservable_height=[ids[a] for a in np.flatnonzero(flat)],
+        mirror_ambiguous=[ids[a] for a in np.flatnonzero(sides.ambiguous)],
+        mirror_moved=[ids[a] for a in np.flatnonzero(sides.moved)],
+        mirror_z={ids[a]: round(float(sides.z[a]), 3) for a in np.flatnonzero(sides.checked)},
+    )
     params = as_dict(p)
     params.update({f"info_{k}": v for k, v in info.items()})
     if solver is not None:

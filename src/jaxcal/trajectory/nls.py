@@ -31,7 +31,7 @@ from jaxcal.precision import in_float64
 from jaxcal.trajectory.common import TrajectoryParams, finish, multilaterate, report_fits
 from jaxcal.trajectory.poses import prepare_poses
 
-__all__ = ["NLSParams", "solve_anchor", "calibrate"]
+__all__ = ["NLSParams", "solve_anchor", "irls_covariance", "robust_covariance", "calibrate"]
 
 
 class NLSParams(TrajectoryParams):
@@ -111,13 +111,27 @@ def solve_anchor(pos, rng, mask, init, p: NLSParams):
     jac = jax.jacfwd(residual)(x, sw)
     if not p.bias:
         jac = jac[:, :3]
-    jtj = jac.T @ jac
-    r = residual(x, sw)
-    dof = jnp.maximum(jnp.sum(w) * jnp.sum(mask) / jnp.maximum(jnp.sum(w), 1e-12) - jac.shape[1], 1.0)
-    s2 = jnp.sum(r**2) / dof * jnp.sum(mask) / jnp.maximum(jnp.sum(w), 1e-12)
-    cov = s2 * jnp.linalg.pinv(jtj)
-    cov = robust_covariance(cov, jac, r, mask, p.n_clusters)
+    cov = irls_covariance(jac, residual(x, sw), w, mask, p.n_clusters)
     return x[:3], cov[:3, :3], x[3] * use_bias, codes[-1]
+
+
+def irls_covariance(jac_w, res_w, w, mask, n_clusters: int):
+    """Covariance of an IRLS fit: the model covariance s^2 (J^T W J)^-1 (s^2 the weighted residual variance
+    per effective observation) widened to the cluster-robust sandwich (`robust_covariance`).
+
+    Args:
+        jac_w: (n, P) Jacobian of the weighted residuals sqrt(w) (model - range); res_w: (n,) those residuals.
+        w: (n,) IRLS weights (0 on padding); mask: (n,) valid entries, in time order.
+        n_clusters: stretches for the sandwich (static).
+
+    Returns:
+        (P, P) covariance.
+    """
+    n_w = jnp.maximum(jnp.sum(w), 1e-12)
+    dof = jnp.maximum(jnp.sum(w) * jnp.sum(mask) / n_w - jac_w.shape[1], 1.0)
+    s2 = jnp.sum(res_w**2) / dof * jnp.sum(mask) / n_w
+    cov = s2 * jnp.linalg.pinv(jac_w.T @ jac_w)
+    return robust_covariance(cov, jac_w, res_w, mask, n_clusters)
 
 
 def robust_covariance(cov_model, jac_w, res_w, mask, n_clusters: int):

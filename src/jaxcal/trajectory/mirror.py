@@ -1,0 +1,204 @@
+"""Which side of the path an anchor is on: the fit against its mirror image through the path's plane.
+
+From a path that is nearly planar (a road on gentle terrain, a walk on one floor) the ranges fix an
+anchor's height above the path's plane well but its *side* poorly: the mirror image through the plane
+gives almost the same ranges, and the range bias that every fit estimates absorbs much of the rest. The
+robust range fit then has two local optima, one on each side, with costs that differ by about as much as
+errors that persist along the path can explain (measured on the simulated ground-vehicle campaigns: about
+a third of the anchors, height errors of 2-5 m with predicted sd of 0.05-0.3 m).
+
+`compare_sides` decides per anchor, with the ranges alone:
+
+1. Refit from the estimate and from its mirror image through the plane of the tag positions weighted
+   toward the nearest (weights 1 / r^2), both with the Cauchy loss (the `nls` model
+   r = |p - a| + b + e) at one fixed scale (2.385 x 1.4826 x the median absolute residual at the estimate,
+   at least 0.05 m), so that both costs are of the same function. A start that converges back to the
+   estimate (the two fits within `mirror_min_sep_m`) means the mirror is not a local optimum: nothing
+   to decide.
+2. Otherwise compare the two optima by a non-nested likelihood-ratio test (Vuong's) whose variance is
+   cluster-robust: the per-range differences of the Cauchy loss are summed over the same `n_clusters`
+   consecutive stretches as `nls`'s covariance, and the sum D [nats] is divided by its sandwich standard
+   deviation sqrt(G / (G - 1) sum_g (D_g - D / G)^2 + 1) (the 1 nat^2: a difference of a few nats is no
+   evidence, and an exact mirror gives a 0 / 0 of rounding errors). Counted as independent, thousands of ranges would
+   make any difference "significant"; errors that persist along a stretch count once.
+3. z = D / sd > `mirror_z`: the mirror fits clearly worse, the estimate is kept. z < -`mirror_z`: the
+   mirror fits clearly better: it replaces the estimate (with the `nls` covariance at it). Otherwise the
+   ranges cannot tell the sides apart: the height is left NaN by `finish` and the horizontal covariance
+   is widened to the second moment of the two optima about the estimate (+ d d^T / 2, d the horizontal
+   shift between them).
+
+Imports `nls` (for its covariance); `common.finish` imports this module inside the function.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from jaxcal import solver as S
+from jaxcal.trajectory.common import is_planar
+from jaxcal.trajectory.nls import irls_covariance
+
+__all__ = ["SideCheck", "local_plane", "compare_sides"]
+
+
+class SideCheck(NamedTuple):
+    """Outcome of `compare_sides` per anchor (host NumPy arrays, A = anchors).
+
+    Attributes:
+        checked: (A,) an alternative optimum on the other side was found and compared.
+        ambiguous: (A,) the two sides fit equally well (|z| <= mirror_z): the height cannot be told.
+        moved: (A,) the other side fits clearly better: the estimate was replaced.
+        z: (A,) cost difference (mirror - estimate) over its cluster-robust sd (NaN where not checked).
+        other: (A, 3) the optimum on the other side [m] (the replaced estimate where `moved`).
+        position: (A, 3), covariance: (A, 3, 3): the estimates after the check (heights not yet NaN).
+    """
+
+    checked: np.ndarray
+    ambiguous: np.ndarray
+    moved: np.ndarray
+    z: np.ndarray
+    other: np.ndarray
+    position: np.ndarray
+    covariance: np.ndarray
+
+
+def _dist(pos, a):
+    d2 = jnp.sum((pos - a) ** 2, axis=-1)
+    safe = jnp.where(d2 > 0, d2, 1.0)
+    return jnp.where(d2 > 0, jnp.sqrt(safe), 0.0)
+
+
+def _nll(r, c):
+    """Cauchy negative log-likelihood of a residual (up to a constant) [nats]: log(1 + (r/c)^2)."""
+    return jnp.log1p((r / c) ** 2)
+
+
+def local_plane(pos, rng, mask):
+    """Plane of the (masked) tag positions weighted 1 / r^2 toward the nearest: (centre (3,), unit normal (3,)
+    with n_z >= 0) [m]."""
+    w = jnp.where(mask, 1.0 / jnp.maximum(rng, 0.5) ** 2, 0.0)
+    sw = jnp.maximum(jnp.sum(w), 1e-300)
+    centre = jnp.sum(pos * w[:, None], axis=0) / sw
+    q = (pos - centre) * jnp.sqrt(w)[:, None]
+    _, vec = jnp.linalg.eigh(q.T @ q / sw)
+    n = vec[:, 0]
+    return centre, n * jnp.where(n[2] < 0, -1.0, 1.0)
+
+
+def _cauchy_fit(pos, rng, mask, x0, c, max_steps: int):
+    """Levenberg-Marquardt on residuals whose squares are the Cauchy loss: r sqrt(log(1 + u) / u), u = (r/c)^2
+    (written so that it stays differentiable at r = 0). Returns ((4,) anchor and bias, outcome code)."""
+
+    def residual(x, _):
+        r = _dist(pos, x[:3]) + x[3] - rng
+        u = (r / c) ** 2
+        small = u < 1e-6
+        us = jnp.where(small, 1.0, u)
+        g = jnp.where(small, 1.0 - 0.5 * u, jnp.log1p(us) / us)
+        return jnp.where(mask, r * jnp.sqrt(g), 0.0)
+
+    sol = optx.least_squares(
+        residual, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10), x0, max_steps=max_steps, throw=False
+    )
+    return sol.value, S.outcome(sol)
+
+
+def _compare_one(pos, rng, mask, est, n_clusters: int, min_scale: float, max_steps: int):
+    r_est = rng - _dist(pos, est)
+    b0 = jnp.nanmedian(jnp.where(mask, r_est, jnp.nan))
+    c = jnp.maximum(2.385 * 1.4826 * jnp.nanmedian(jnp.where(mask, jnp.abs(r_est - b0), jnp.nan)), min_scale)
+    x0, k0 = _cauchy_fit(pos, rng, mask, jnp.concatenate([est, b0[None]]), c, max_steps)
+    centre, n = local_plane(pos, rng, mask)
+    mirror = x0[:3] - 2.0 * jnp.dot(x0[:3] - centre, n) * n
+    x1, k1 = _cauchy_fit(pos, rng, mask, jnp.concatenate([mirror, x0[3:]]), c, max_steps)
+    res0 = _dist(pos, x0[:3]) + x0[3] - rng
+    res1 = _dist(pos, x1[:3]) + x1[3] - rng
+    diff = jnp.where(mask, _nll(res1, c) - _nll(res0, c), 0.0)
+    n_valid = jnp.maximum(jnp.sum(mask), 1)
+    cluster = jnp.where(mask, ((jnp.cumsum(mask) - 1) * n_clusters) // n_valid, n_clusters)
+    d_g = jax.ops.segment_sum(diff, cluster, n_clusters + 1)[:n_clusters]
+    d = jnp.sum(d_g)
+    var = n_clusters / (n_clusters - 1.0) * jnp.sum((d_g - d / n_clusters) ** 2)
+    # + 1 nat^2: an exact mirror (a path in one plane) gives d and var of rounding size, whose ratio means
+    # nothing; a log-likelihood difference below a few nats is no evidence either way.
+    z = d / jnp.sqrt(var + 1.0)
+    # nls's covariance at the other optimum (used where it replaces the estimate).
+    w1 = jnp.where(mask, 1.0 / (1.0 + (res1 / c) ** 2), 0.0)
+    sw1 = jnp.sqrt(w1)
+    jac = jax.jacfwd(lambda x: sw1 * (_dist(pos, x[:3]) + x[3] - rng))(x1)
+    cov1 = irls_covariance(jac, sw1 * res1, w1, mask, n_clusters)[:3, :3]
+    return x0[:3], x1[:3], jnp.maximum(k0, k1), z, cov1
+
+
+@eqx.filter_jit
+def _compare_all(pos, rng, mask, est, n_clusters: int, min_scale: float, max_steps: int):
+    return jax.vmap(lambda p, r, m, e: _compare_one(p, r, m, e, n_clusters, min_scale, max_steps))(pos, rng, mask, est)
+
+
+def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
+    """The mirror-image check of the anchors with a finite estimate (see the module docstring).
+
+    Args:
+        groups: AnchorRanges (tag positions, ranges, mask per anchor, in time order).
+        est: (A, 3) estimates [m] (NaN rows and NaN heights are not checked, nor anchors whose tag
+            positions are planar (`is_planar`): their side is the convention `p.side`). cov: (A, 3, 3) [m^2].
+        p: TrajectoryParams (`mirror_z`, `mirror_min_sep_m`, `min_ranges`; `n_clusters` and `min_scale_m`
+            where the method has them, else 16 and 0.05 m).
+
+    Returns:
+        SideCheck. A fit that did not converge counts as no alternative (nothing is changed).
+    """
+    a_n = est.shape[0]
+    out = SideCheck(
+        checked=np.zeros(a_n, bool),
+        ambiguous=np.zeros(a_n, bool),
+        moved=np.zeros(a_n, bool),
+        z=np.full(a_n, np.nan),
+        other=np.full((a_n, 3), np.nan),
+        position=np.array(est, dtype=float),
+        covariance=np.array(cov, dtype=float),
+    )
+    mask = np.asarray(groups.mask)
+    pos = np.asarray(groups.position)
+    planar = np.zeros(a_n, bool)
+    for a in range(a_n):  # a planar path's side comes from `p.side` (the `ls` start), not from the data
+        q = pos[a][mask[a]]
+        if q.shape[0]:
+            hstd = float(np.sqrt(np.mean(np.sum((q[:, :2] - q[:, :2].mean(axis=0)) ** 2, axis=1))))
+            planar[a] = bool(is_planar(float(np.std(q[:, 2])), hstd, p.planar_tol_m, p.planar_ratio))
+    todo = np.flatnonzero(np.isfinite(est).all(axis=1) & (mask.sum(axis=1) >= max(p.min_ranges, 4)) & ~planar)
+    if p.mirror_z <= 0 or todo.size == 0:
+        return out
+    x0, x1, code, z, cov1 = (
+        np.asarray(v)
+        for v in _compare_all(
+            jnp.asarray(pos[todo]),
+            jnp.asarray(np.asarray(groups.range)[todo]),
+            jnp.asarray(mask[todo]),
+            jnp.asarray(est[todo]),
+            int(getattr(p, "n_clusters", 16)),
+            float(getattr(p, "min_scale_m", 0.05)),
+            200,
+        )
+    )
+    distinct = (code == S.CONVERGED) & (np.linalg.norm(x1 - x0, axis=1) > p.mirror_min_sep_m) & np.isfinite(z)
+    for k, a in enumerate(todo):
+        if not distinct[k]:
+            continue
+        out.checked[a], out.z[a], out.other[a] = True, z[k], x1[k]
+        if z[k] < -p.mirror_z:
+            out.moved[a] = True
+            out.other[a] = est[a]
+            out.position[a] = x1[k]
+            out.covariance[a] = 0.5 * (cov1[k] + cov1[k].T)
+        elif z[k] <= p.mirror_z:
+            out.ambiguous[a] = True
+            dh = x1[k, :2] - est[a, :2]
+            out.covariance[a, :2, :2] += 0.5 * np.outer(dh, dh)
+    return out

@@ -1,0 +1,68 @@
+"""The mirror-image check of trajectory anchors (`jaxcal.trajectory.mirror`, applied by `common.finish`)."""
+
+import numpy as np
+import pytest
+
+from jaxcal.data import TrajectoryDataset
+from jaxcal.trajectory import nls
+
+
+def sloped_campaign(seed=0, bumps_m=0.0, noise_m=0.05):
+    """A platform on a loop over a plane sloping 15 % (plus bumps of `bumps_m`), one anchor 1.5 m above
+    the plane beside the loop. Without bumps the mirror image through the plane gives the same ranges
+    (the path is not flat: its height spread of 0.6 m passes `is_planar`); with bumps of a metre it does
+    not. (Bumps of 2 cm under 5 cm of independent noise already tell the sides apart at about 2 sd.)"""
+    gen = np.random.default_rng(seed)
+    anchor = np.array([[2.0, 6.5, 0.15 * 2.0 + 1.5]])
+
+    def body(t):
+        x, y = 6 * np.cos(0.2 * t), 5 * np.sin(0.4 * t)
+        return np.stack([x, y, 0.15 * x + bumps_m * np.sin(0.9 * t)], 1), 0.2 * t
+
+    t = np.arange(0, 80.0, 0.1)
+    p, yaw = body(t)
+    q = np.stack([0 * t, 0 * t, np.sin(yaw / 2), np.cos(yaw / 2)], 1)
+    rt = np.arange(0.5, 79.5, 0.05)
+    pr, _ = body(rt)
+    r = np.linalg.norm(pr - anchor[0], axis=1) + 0.1 + noise_m * gen.normal(size=rt.size)
+    return TrajectoryDataset(
+        name="sloped",
+        anchor_ids=["a0"],
+        tag_ids=["t"],
+        lever_arm=[[0.0, 0.0, 0.0]],
+        pose_time=t,
+        pose_position=p,
+        pose_orientation=q,
+        range_time=rt,
+        range_anchor=np.zeros(rt.size, int),
+        range_tag=np.zeros(rt.size, int),
+        range=r,
+        anchor_truth=anchor,
+    )
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_mirror_ambiguous_height_is_nan_with_one_warning_line(seed, caplog):
+    ds = sloped_campaign(seed)
+    with caplog.at_level("WARNING", logger="jaxcal"):
+        res = nls.calibrate(ds)
+    assert np.isnan(res.position[0, 2]) and np.isnan(res.covariance[0, 2]).all()
+    # the mirror through a 15 % slope is 0.44 m off horizontally: the ellipse is widened to both sides
+    assert np.linalg.norm(res.position[0, :2] - ds.anchor_truth[0, :2]) < 0.6
+    assert np.sqrt(np.linalg.eigvalsh(res.covariance[0, :2, :2]).max()) > 0.2
+    assert res.params["info_mirror_ambiguous"] == ["a0"] and res.params["info_unobservable_height"] == []
+    lines = [r.getMessage() for r in caplog.records if "mirror" in r.getMessage()]
+    assert len(lines) == 1 and "(a0)" in lines[0] and "\n" not in lines[0]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_height_kept_where_the_path_climbs(seed):
+    ds = sloped_campaign(seed, bumps_m=1.5)
+    res = nls.calibrate(ds)
+    assert res.params["info_mirror_ambiguous"] == [] and res.params["info_mirror_moved"] == []
+    assert np.linalg.norm(res.position[0] - ds.anchor_truth[0]) < 0.1
+
+
+def test_mirror_check_off_keeps_the_height():
+    res = nls.calibrate(sloped_campaign(0), {"mirror_z": 0.0})
+    assert np.isfinite(res.position[0]).all() and res.params["info_mirror_ambiguous"] == []
