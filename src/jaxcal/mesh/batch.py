@@ -110,6 +110,9 @@ class BatchParams(eqx.Module):
             epochs and between the two directions, count less; see `spread_weights`).
         gnc_stages: graduated non-convexity: the multi-start fit runs with loss scales
             sigma_r * 2^(G-1), ..., sigma_r (G stages; 1 = no graduation).
+        gnc_tol: tolerance of the stages before the last one (`solver=lm`; at most `tol` is never
+            tightened): they only carry a start into the basin of the narrow loss, so converging them to
+            `tol` spends steps that the last stage repeats (about half of the fit's steps at N = 100).
         relocate_rounds: rounds of single-node relocation after the multi-start fit: every node in
             turn is moved to the best point of a grid over the scene (its own robust cost, the
             others fixed), which undoes flips (mirror images of weakly constrained nodes) and
@@ -152,6 +155,7 @@ class BatchParams(eqx.Module):
     z_up: bool = True
     irls_iters: int = 15
     gnc_stages: int = 6
+    gnc_tol: float = 1e-4
     relocate_rounds: int = 2
     relocate_grid: int = 48
     relocate_candidates: int = 8
@@ -176,7 +180,7 @@ class BatchParams(eqx.Module):
                 )
         if self.dim not in (2, 3):
             raise JaxcalError(f"parameter dim: expected 2 or 3, got {self.dim}")
-        for name in ("sigma_r", "node_bias_sigma_m", "nlos_mean_m", "outlier_span_m", "tol", "student_nu"):
+        for name in ("sigma_r", "node_bias_sigma_m", "nlos_mean_m", "outlier_span_m", "tol", "gnc_tol", "student_nu"):
             if not getattr(self, name) > 0:
                 raise JaxcalError(f"parameter {name}: must be > 0, got {getattr(self, name)}")
         for name in ("nlos_weight", "outlier_weight"):
@@ -535,7 +539,14 @@ def _initial_starts(
 
 @eqx.filter_jit
 def _fit_starts(
-    y0s: _State, obs: Observations, nb: _Numbers, solver: str, tol: float, max_steps: int, factors: Array | None = None
+    y0s: _State,
+    obs: Observations,
+    nb: _Numbers,
+    solver: str,
+    tol: float,
+    max_steps: int,
+    factors: Array | None = None,
+    coarse_tol: float | None = None,
 ):
     """Refine every start (a batched `_State`; vmapped least squares); returns final states, costs and
     the outcome codes of their last fits (`jaxcal.solver.outcome`).
@@ -543,18 +554,27 @@ def _fit_starts(
     With `factors` (G,) the loss scale is graduated (graduated non-convexity): the fit is solved
     with sigma_r * factors[0], ..., sigma_r * factors[-1] in turn, each warm-started from the last. A wide
     scale first pulls every start towards the bulk of the data before a narrow, redescending loss
-    decides which ranges are outliers, so gross errors in the start do not trap the fit.
+    decides which ranges are outliers, so gross errors in the start do not trap the fit. With `coarse_tol`
+    (`solver="lm"` only), every stage but the last stops at that tolerance (or `tol`, if looser).
     """
     args = (obs, nb)
     factors = jnp.ones(1) if factors is None else factors
+    last = jnp.arange(factors.shape[0]) == factors.shape[0] - 1
+    coarse = solver == "lm" and coarse_tol is not None
 
     def one(y0):
-        def stage(y, factor):
+        def stage(y, fl):
+            factor, is_last = fl
             nbk = eqx.tree_at(lambda t: t.sigma_r, nb, nb.sigma_r * factor)
-            sol = optx.least_squares(_residuals, _solver(solver, tol), y, (obs, nbk), max_steps=max_steps, throw=False)
+            if coarse:
+                tol_k = jnp.where(is_last, tol, max(tol, coarse_tol))
+                opt = SparseLevenbergMarquardt(rtol=tol_k, atol=tol_k, rows=_rows)
+            else:
+                opt = _solver(solver, tol)
+            sol = optx.least_squares(_residuals, opt, y, (obs, nbk), max_steps=max_steps, throw=False)
             return sol.value, S.outcome(sol)
 
-        y, codes = jax.lax.scan(stage, y0, factors)
+        y, codes = jax.lax.scan(stage, y0, (factors, last))
         return y, _cost(y, args), codes[-1]
 
     # one start at a time: each stops at its own step count (a vmapped while loop runs every start as
@@ -822,6 +842,7 @@ def posterior_mean(
     nu: Array,
     n_chains: int,
     n_steps: int,
+    sample_node_offsets: bool = True,
 ):
     """Posterior mean and covariance of the free frame coordinates (and offsets) (`estimate=mean`).
 
@@ -842,6 +863,10 @@ def posterior_mean(
         mask: (m, D) bool, which entries of `template` are free; c, b: the fit's offsets;
         obs: pair observations (padding has weight 0); nb: numbers of the fit; key: PRNG key;
         nu: Student-t degrees of freedom; n_chains, n_steps: static sampler sizes.
+        sample_node_offsets: static; False when the model has no per-node offsets (`nb.use_b` off): they
+            then enter no range, their posterior is their prior (mean 0, sd `node_bias_sigma_m`,
+            independent of the rest), and they are returned as such instead of being sampled (P = F + 1
+            sampled dimensions instead of F + 1 + n: the whitening costs O(P^2) per gradient).
 
     Returns:
         (mean (F + 1 + n,), covariance (F + 1 + n, F + 1 + n), acceptance rate, max split R-hat over the
@@ -849,12 +874,13 @@ def posterior_mean(
     """
     f, n_b = free.shape[0], b.shape[0]
     idx = jnp.nonzero(mask.ravel(), size=f)[0]
-    theta0 = jnp.concatenate([free, jnp.reshape(c, (1,)), b])
+    b_fixed = jnp.zeros_like(b)
+    theta0 = jnp.concatenate([free, jnp.reshape(c, (1,))] + ([b] if sample_node_offsets else []))
     p_dim = theta0.shape[0]
 
     def errs(theta):
         x = template.ravel().at[idx].set(theta[:f]).reshape(template.shape)
-        return _errors(_State(x, theta[f], theta[f + 1 :]), obs, nb)
+        return _errors(_State(x, theta[f], theta[f + 1 :] if sample_node_offsets else b_fixed), obs, nb)
 
     real = obs.w > 0
     e0 = errs(theta0)
@@ -862,6 +888,7 @@ def posterior_mean(
     scale = _pair_scale(e0, real, n_par)
     sc, sb = _prior_scales(nb)
     prior_prec = jnp.concatenate([jnp.zeros(f), jnp.stack([1.0 / sc**2]), jnp.full(n_b, 1.0 / sb**2)])
+    prior_prec = prior_prec[:p_dim]
 
     def logp(theta):
         e = errs(theta)
@@ -887,14 +914,15 @@ def posterior_mean(
         h = eps * jax.random.uniform(k3, minval=0.8, maxval=1.2)  # jittered step size
         mom = jax.random.normal(k1, u.shape)
 
-        def leap(state, _):
-            q, pm = state
-            pm = pm + 0.5 * h * grad(q)
+        def leap(state, _):  # the gradient at q is carried: one evaluation per leapfrog step, not two
+            q, pm, g = state
+            pm = pm + 0.5 * h * g
             q = q + h * pm
-            pm = pm + 0.5 * h * grad(q)
-            return (q, pm), None
+            g = grad(q)
+            pm = pm + 0.5 * h * g
+            return (q, pm, g), None
 
-        (q, pm), _ = jax.lax.scan(leap, (u, mom), None, length=_LEAPFROG)
+        (q, pm, _), _ = jax.lax.scan(leap, (u, mom, grad(u)), None, length=_LEAPFROG)
         lq = jax.vmap(lp_u)(q)
         log_ratio = lq - lp - 0.5 * jnp.sum(pm * pm - mom * mom, axis=-1)
         log_ratio = jnp.where(jnp.isfinite(log_ratio), log_ratio, -jnp.inf)
@@ -946,7 +974,11 @@ def posterior_mean(
     accept = (accept + jnp.sum(carry[3])) / (2 * half * n_chains)
     mean, cov = moments(s1a + s1b, oa + ob, 2 * half * n_chains)
     rhat = _split_rhat(jnp.stack([s1a, s1b])[..., :f], jnp.stack([s2a, s2b])[..., :f], half)
-    return mean, 0.5 * (cov + cov.T), accept, jnp.max(rhat)
+    cov = 0.5 * (cov + cov.T)
+    if not sample_node_offsets:  # append the node offsets' prior: mean 0, variance sb^2, uncorrelated
+        mean = jnp.concatenate([mean, b_fixed])
+        cov = jax.scipy.linalg.block_diag(cov, jnp.eye(n_b) * sb**2)
+    return mean, cov, accept, jnp.max(rhat)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1173,7 +1205,7 @@ def solve(
     s_count = x0s.shape[0]
     y0s = _State(x0s, jnp.zeros(s_count), jnp.zeros((s_count, m)))
     gnc = jnp.asarray(2.0 ** np.arange(p.gnc_stages - 1, -1, -1), dtype=float)
-    states, costs, fit_codes = _fit_starts(y0s, obs_med, nb, p.solver, p.tol, p.max_steps, gnc)
+    states, costs, fit_codes = _fit_starts(y0s, obs_med, nb, p.solver, p.tol, p.max_steps, gnc, p.gnc_tol)
     costs = np.where(np.isfinite(np.asarray(costs)), np.asarray(costs), np.inf)
     best = int(np.argmin(costs))
     state, code = jax.tree.map(lambda a: a[best], states), fit_codes[best]  # code: of the fit `state` is
@@ -1269,6 +1301,7 @@ def solve(
             jnp.asarray(float(p.student_nu)),
             p.mcmc_chains,
             p.mcmc_steps,
+            chosen == "node",
         )
         f = free.size
         mean, cov_s = np.asarray(mean), np.asarray(cov_s)
