@@ -12,7 +12,7 @@ flattening and unflattening (as JAX transforms do) does not.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, cast
 
 import equinox as eqx
 import numpy as np
@@ -177,7 +177,8 @@ def _as_configs(c) -> tuple[tuple[str, tuple[int, int, int]], ...]:
     if c is None:
         return ()
     items = c.items() if isinstance(c, Mapping) else c
-    return tuple((str(k), tuple(int(i) for i in v)) for k, v in items)
+    # the triple's length is checked with the rest of the dataset (__check_init__)
+    return tuple((str(k), cast(tuple[int, int, int], tuple(int(i) for i in v))) for k, v in items)
 
 
 class TrajectoryDataset(eqx.Module):
@@ -312,7 +313,7 @@ class Result(eqx.Module):
         a = tuple(int(s) for s in self.frame.split(":", 1)[1].split(","))
         if len(a) != 3:
             raise DataError(f"Result.frame: expected three indices, got {self.frame!r}")
-        return a  # type: ignore[return-value]
+        return a
 
 
 def mesh_true_distances(truth: np.ndarray) -> np.ndarray:

@@ -265,7 +265,7 @@ def node_error_distributions(
     ax = fig.subplots()
     w = 0.8 / max(len(confs), 1)
     x = np.arange(n)
-    handles = []
+    handles: list = []  # legend artists: Patch and Line2D
     for c, conf in enumerate(confs):
         e = np.asarray(errors[conf], dtype=np.float64)
         if e.ndim == 1:
@@ -445,7 +445,7 @@ def positions_map(
     ax = fig.subplots()
     ax.scatter(t[ok, 0], t[ok, 1], marker="x", s=70, color="k", linewidths=1.8, label="truth", zorder=5)
     for i in np.flatnonzero(ok):
-        ax.annotate(ids[i], t[i], xytext=(5, 5), textcoords="offset points", fontsize=8)
+        ax.annotate(ids[int(i)], t[i], xytext=(5, 5), textcoords="offset points", fontsize=8)
     for m, (label, (pos, cov)) in enumerate(estimates.items()):
         p = np.asarray(pos, dtype=np.float64)[:, :2]
         fin = np.isfinite(p).all(axis=1)
@@ -636,6 +636,7 @@ def trajectory_anchors(
             ax.set_title("anchors over the trajectory")
             ax.legend(fontsize=8, loc="best")
         else:
+            assert at is not None  # the zoom panel exists only with a truth
             ok = np.isfinite(at[:, :2]).all(axis=1)
             lo, hi = at[ok, :2].min(axis=0), at[ok, :2].max(axis=0)
             c, h = 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo)) + 2.0

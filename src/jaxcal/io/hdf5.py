@@ -122,13 +122,13 @@ def read(path: str | os.PathLike) -> MeshDataset | TrajectoryDataset | Result:
 
 
 def _read_mesh(f, path, name) -> MeshDataset:
-    configs = {}
+    configs: dict[str, tuple[int, int, int]] = {}
     if "configs" in f:
         for k, v in f["configs"].items():
             arr = np.asarray(v[()])
             if arr.shape != (3,):
                 raise FormatError(f"{path}: configs/{k} must have shape (3,), got {arr.shape}")
-            configs[k] = tuple(int(i) for i in arr)
+            configs[k] = (int(arr[0]), int(arr[1]), int(arr[2]))
     return MeshDataset(
         name=name,
         node_ids=_get(f, "nodes/id", path),
@@ -138,7 +138,7 @@ def _read_mesh(f, path, name) -> MeshDataset:
         los=_get(f, "links/los", path, False),
         fp_rssi=_get(f, "epochs/fp_rssi", path, False),
         rx_rssi=_get(f, "epochs/rx_rssi", path, False),
-        configs=configs,
+        configs=tuple(configs.items()),
         **_meta(f),
     )
 

@@ -40,6 +40,7 @@ import math
 import re
 import sys
 from collections import deque
+from typing import Any
 
 import numpy as np
 
@@ -126,7 +127,7 @@ class LiveCalibrator:
         self.track: list[np.ndarray] = []  # (N_k, 2) estimate per fed epoch (padded at the end)
         self.ids: list[str] = []
         self.frame: tuple[str, str, str] | None = None
-        self.pgp = None
+        self.pgp: Any = None  # the filter's stream state (pgp.PGPStream) once started
         self.n = 0
         self.restarts = 0
         self.settled_at: dict[str, float] = {}
@@ -216,6 +217,7 @@ class LiveCalibrator:
 
         self.ids = list(rec.ids)
         self.n = len(self.ids)
+        assert self.frame is not None  # chosen before the filter starts
         rec.frame_ids = self.frame  # the recorded file's `default` configuration: batch = live frame
         a = [self.ids.index(s) for s in self.frame]
         items = list(self.epochs)
@@ -328,10 +330,10 @@ class LiveCalibrator:
         lines = [f"live pgp {head}, epoch {len(self.track)}: {int(st.sum())}/{self.n} settled"]
         lines.append(f"  {'node':>6} {'x [m]':>8} {'y [m]':>8} {'sd [m]':>7}  settled")
         for name in sorted(self.ids, key=_id_key(self.ids)):
-            i = self.ids.index(name)
-            x, y = est[i]
+            k = self.ids.index(name)
+            x, y = est[k]
             pos = f"{x:8.2f} {y:8.2f}" if np.isfinite(x) else f"{'-':>8} {'-':>8}"
-            lines.append(f"  {name:>6} {pos} {sd[i]:7.2f}  {'yes' if st[i] else 'no'}")
+            lines.append(f"  {name:>6} {pos} {sd[k]:7.2f}  {'yes' if st[k] else 'no'}")
         self._say("\n".join(lines))
 
     def result(self, dataset):

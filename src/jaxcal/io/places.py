@@ -223,7 +223,7 @@ def write_places_files(directory, scene, anchor_error_m: float, seed: int):
     hdf5.write(
         an_path,
         Result(
-            ids=anchor_ids,
+            ids=tuple(anchor_ids),
             position=pos,
             covariance=cov,
             method="simulated",

@@ -392,6 +392,8 @@ def replay(
         stored = header
     if stored is not None:
         sp = stored.get("protocol")
+        if sp is None:
+            raise JaxcalError(f"{p}: the file names no protocol; cannot replay it")
         if protocol is not None and protocol != sp:
             raise JaxcalError(f"{p}: recorded with protocol {sp}, not {protocol}")
         kw = {k: v for k, v in rec_kwargs.items() if k != "frame_ids"}
@@ -430,7 +432,8 @@ class _Flusher:
     """Calls `on_flush(rec)` each time frame time passes the next multiple of `flush_s` (replay)."""
 
     def __init__(self, rec: Recording, on_flush, flush_s: float) -> None:
-        self.rec, self.on_flush, self.flush_s, self.next = rec, on_flush, flush_s, None
+        self.rec, self.on_flush, self.flush_s = rec, on_flush, flush_s
+        self.next: float | None = None
 
     def __call__(self, t: float) -> None:
         if self.on_flush is None:

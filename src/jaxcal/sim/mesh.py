@@ -214,11 +214,11 @@ def simulate(scenario: str | MeshScenario = "torgau", seed: int = 0, **overrides
     los_k = np.broadcast_to(los, shape)
     err = sample_range_errors(rng_err, los_k, sc.channel)
     if sc.bad_pairs:
-        bad = np.zeros((n, n), dtype=bool)
+        bad_pair = np.zeros((n, n), dtype=bool)
         for i, j in sc.bad_pairs:
-            bad[i, j] = bad[j, i] = True
+            bad_pair[i, j] = bad_pair[j, i] = True
         worse = dataclasses.replace(sc.channel, nlos_outlier_prob=sc.bad_pair_outlier_prob)
-        err = np.where(bad & ~los, sample_range_errors(rng_err, los_k, worse), err)
+        err = np.where(bad_pair & ~los, sample_range_errors(rng_err, los_k, worse), err)
     keep = rng_drop.random(shape) >= np.where(los, sc.los_dropout, sc.nlos_dropout)
     rng_ = np.maximum(dist[None] + err, 0.0)
     if sc.symmetric:
@@ -238,7 +238,7 @@ def simulate(scenario: str | MeshScenario = "torgau", seed: int = 0, **overrides
         range=ranges,
         truth=truth,
         los=los_i8,
-        configs=dict(sc.configs),
+        configs=tuple(sc.configs),
         description=f"simulated mesh scenario {sc.name!r}, seed {seed} (jaxcal.sim.mesh)",
         source="jaxcal simulator",
         license="CC0-1.0",

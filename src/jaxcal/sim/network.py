@@ -79,7 +79,7 @@ def network_scenario(
         positions=tuple(map(tuple, xy)),
         walls=tuple(walls),
         n_epochs=n_epochs,
-        never=tuple(map(tuple, far.tolist())),
+        never=tuple((int(i), int(j)) for i, j in far.tolist()),
         configs=(("conf1", (0, 1, 2)),),
         min_separation=min_separation,
     )

@@ -112,11 +112,11 @@ def _route(cfg: PlaceConfig) -> tuple[np.ndarray, np.ndarray]:
         pts.append(np.stack([x, np.full_like(x, y)], 1))
         dirs.append(np.tile([1.0 if i % 2 == 0 else -1.0, 0.0], (x.size, 1)))
     xs = np.arange(cfg.cross_pitch_m / 2, cfg.width_m, cfg.cross_pitch_m)
-    for i, x in enumerate(xs):  # then the cross aisles along y
-        y = np.arange(0.0, cfg.height_m, step)
-        y = y if i % 2 == 0 else y[::-1]
-        pts.append(np.stack([np.full_like(y, x), y], 1))
-        dirs.append(np.tile([0.0, 1.0 if i % 2 == 0 else -1.0], (y.size, 1)))
+    for i, xc in enumerate(xs):  # then the cross aisles along y
+        ya = np.arange(0.0, cfg.height_m, step)
+        ya = ya if i % 2 == 0 else ya[::-1]
+        pts.append(np.stack([np.full_like(ya, xc), ya], 1))
+        dirs.append(np.tile([0.0, 1.0 if i % 2 == 0 else -1.0], (ya.size, 1)))
     return np.concatenate(pts), np.concatenate(dirs)
 
 

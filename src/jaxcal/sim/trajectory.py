@@ -171,8 +171,8 @@ def simulate(
     order = np.argsort(r_time, kind="stable")
     return TrajectoryDataset(
         name=f"sim-{scenario}" + (f"-drift{drift:g}" if drift > 0 else ""),
-        anchor_ids=[f"A{i + 1:02d}" for i in range(n_anchors)],
-        tag_ids=["T1"],
+        anchor_ids=tuple(f"A{i + 1:02d}" for i in range(n_anchors)),
+        tag_ids=("T1",),
         lever_arm=lever,
         pose_time=t,
         pose_position=pos_rep,

@@ -85,13 +85,13 @@ def import_csv(path: str | os.PathLike, name: str | None = None) -> MeshDataset:
     power = {c: np.full((k, n, n), np.nan, np.float32) for c in opt if c != "los"}
     los_seen = np.zeros((n, n, 3), bool)  # labels -1, 0, 1 seen per directed link
     for (t, a, b), vals in recs.items():
-        e, i, j = t_idx[t], ids[a], ids[b]
-        rng[e, i, j] = vals[0]
+        ep, i, j = t_idx[t], ids[a], ids[b]
+        rng[ep, i, j] = vals[0]
         for c, v in zip(opt, vals[1:], strict=False):
             if c == "los":
                 los_seen[i, j, int(v) + 1] = True
             else:
-                power[c][e, i, j] = v
+                power[c][ep, i, j] = v
     los = None
     if "los" in opt:
         los = np.full((n, n), -1, np.int8)
@@ -103,7 +103,7 @@ def import_csv(path: str | os.PathLike, name: str | None = None) -> MeshDataset:
     notes.append(skipped.describe())
     return MeshDataset(
         name=name or Path(p).stem,
-        node_ids=list(ids),
+        node_ids=tuple(ids),
         time=times,
         range=rng,
         los=los,

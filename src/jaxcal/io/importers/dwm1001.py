@@ -181,7 +181,9 @@ def import_dwm1001(
     d = existing_dir(scenario_dir)
     ids, truth = read_nodes_cfg(nodes_cfg)
     n = len(ids)
-    mats, missing, bad_lines = [], [], 0
+    mats: list[np.ndarray | None] = []
+    missing: list[str] = []
+    bad_lines = 0
     for node in ids:
         f = d / f"{node}_ranging_data.txt"
         if not f.is_file():
@@ -204,9 +206,9 @@ def import_dwm1001(
         )
     k = max(m.shape[0] for m in mats if m is not None)
     raw = np.full((k, n, n), np.nan)
-    for i, m in enumerate(mats):
-        if m is not None:
-            raw[: m.shape[0], i, :] = m
+    for i, mat in enumerate(mats):
+        if mat is not None:
+            raw[: mat.shape[0], i, :] = mat
     raw[:, np.arange(n), np.arange(n)] = np.nan
     no_meas = raw == -1.0
     absurd = ~no_meas & ~np.isnan(raw) & ((raw < 0) | (raw > MAX_RANGE_M) | ~np.isfinite(raw))
@@ -240,11 +242,11 @@ def import_dwm1001(
         )
     return MeshDataset(
         name=name or f"dwm1001-{Path(nodes_cfg).stem}",
-        node_ids=ids,
+        node_ids=tuple(ids),
         time=time,
         range=rng.astype(np.float32),
         truth=truth,
-        configs=configs,
+        configs=tuple(configs.items()),
         description=join_notes(*notes),
         source=SOURCE,
         license=LICENSE,

@@ -80,9 +80,9 @@ def _read_anchor(p: Path):
         out.append((t, r, fp, rx))
         pos.append(xyz)
     skipped.fail_if_nothing(len(out))
-    pos = np.asarray(pos)
-    truth = np.median(pos, axis=0)
-    spread = float(np.max(np.abs(pos - truth)))
+    pos_m = np.asarray(pos)
+    truth = np.median(pos_m, axis=0)
+    spread = float(np.max(np.abs(pos_m - truth)))
     return np.asarray(out), truth, spread, skipped
 
 
@@ -125,9 +125,7 @@ def import_hanyang(run_dir: str | os.PathLike, name: str | None = None) -> Traje
         with `range_los` from the folder name and signal powers.
     """
     d = existing_dir(run_dir)
-    files = sorted(
-        (f for f in d.iterdir() if _ANCHOR_FILE.match(f.name)), key=lambda f: int(_ANCHOR_FILE.match(f.name).group(1))
-    )
+    files = sorted((f for f in d.iterdir() if _ANCHOR_FILE.match(f.name)), key=lambda f: int(f.name[1:].split(".")[0]))
     if not files:
         raise JaxcalError(f"{d}: no anchor file A<id>.csv")
     pt, ppos, sk_t = _read_trajectory(existing_file(d / "trajectory.csv"))
@@ -163,8 +161,8 @@ def import_hanyang(run_dir: str | os.PathLike, name: str | None = None) -> Traje
     ]
     return TrajectoryDataset(
         name=name or default,
-        anchor_ids=anchor_ids,
-        tag_ids=["tag"],
+        anchor_ids=tuple(anchor_ids),
+        tag_ids=("tag",),
         lever_arm=np.zeros((1, 3)),
         pose_time=pt,
         pose_position=ppos,

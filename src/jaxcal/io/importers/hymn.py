@@ -65,12 +65,14 @@ def _pylist(cell: str, column: str) -> list[str]:
 def _coordinates(path: Path, xyz: tuple[str, str, str]) -> dict[str, tuple[float, float, float]]:
     cols, rows = csv_rows(path, ("point_id", *xyz))
     ix = [cols.index(c) for c in ("point_id", *xyz)]
-    out, skipped = {}, Skipped(path)
+    out: dict[str, tuple[float, float, float]] = {}
+    skipped = Skipped(path)
     for line, row in rows:
         try:
             if len(row) != len(cols):
                 raise BadCell("point_id", "", f"expected {len(cols)} fields, got {len(row)}")
-            out[row[ix[0]].strip()] = tuple(finite(row[i], c) for i, c in zip(ix[1:], xyz, strict=False))
+            x, y, z = (finite(row[i], c) for i, c in zip(ix[1:], xyz, strict=True))
+            out[row[ix[0]].strip()] = (x, y, z)
         except BadCell as e:
             skipped.add("bad row", line, str(e))
     skipped.fail_if_nothing(len(out))
@@ -144,10 +146,10 @@ def import_hymn(root: str | os.PathLike, name: str | None = None) -> TrajectoryD
             pose_t.append(t)
             pose_p.append(points[pid])
         prev_pid = pid
-    pose_t = np.asarray(pose_t)
-    if pose_t.size >= 2 and np.any(np.diff(pose_t) <= 0):
-        i = int(np.argmax(np.diff(pose_t) <= 0))
-        raise JaxcalError(f"{uwb}: two dwells share the time {pose_t[i]!r} s; cannot form strictly increasing poses")
+    pose_time = np.asarray(pose_t)
+    if pose_time.size >= 2 and np.any(np.diff(pose_time) <= 0):
+        i = int(np.argmax(np.diff(pose_time) <= 0))
+        raise JaxcalError(f"{uwb}: two dwells share the time {pose_time[i]!r} s; cannot form strictly increasing poses")
 
     rt = [t for t, _, meas in epochs for _ in meas]
     ra = [a for _, _, meas in epochs for a, _ in meas]
@@ -161,10 +163,10 @@ def import_hymn(root: str | os.PathLike, name: str | None = None) -> TrajectoryD
     ]
     return TrajectoryDataset(
         name=name or "hymn-torgau",
-        anchor_ids=anchor_ids,
-        tag_ids=[TAG_ID],
+        anchor_ids=tuple(anchor_ids),
+        tag_ids=(TAG_ID,),
         lever_arm=np.zeros((1, 3)),
-        pose_time=pose_t,
+        pose_time=pose_time,
         pose_position=np.asarray(pose_p, float).reshape(-1, 3),
         range_time=np.asarray(rt, float),
         range_anchor=np.asarray(ra, np.int32),

@@ -61,7 +61,7 @@ def _pos(b: bytes, o: int) -> tuple[tuple[float, float, float], int]:
     return (x / 1000.0, y / 1000.0, z / 1000.0), qf
 
 
-def _item_ok(t: int, value: bytes) -> bool:
+def _item_ok(t: int, value: bytes | bytearray) -> bool:
     n = len(value)
     if t == 0x41:
         return n == 13
@@ -337,7 +337,9 @@ def _parse_lep(text: str):
 
 
 def _parse_les(text: str, me: str):
-    anchors, ranges, fields = [], [], {}
+    anchors: list[dict[str, object]] = []
+    ranges: list[Range] = []
+    fields: dict[str, object] = {}
     for tok in text.split():
         m = _LES_ANCHOR.match(tok)
         if m:
@@ -392,9 +394,10 @@ def parse_shell_line(line: bytes, self_id: str | None = None) -> Frame | None:
     text = raw.decode("ascii", errors="replace")
     if any(c == "\ufffd" or ord(c) < 32 and c != "\t" or ord(c) == 127 for c in text):
         raise FrameError("shell line with non-ASCII or control characters")
-    text = _strip_prompt(text)
-    if text is None:
+    stripped = _strip_prompt(text)
+    if stripped is None:
         return None
+    text = stripped
     me = self_id or "tag"
     if text.startswith("DIST,") and text.split(",", 2)[1].isdigit():
         fields, ranges = _parse_lec(text, me)

@@ -142,7 +142,7 @@ def _ranging_nodes(raw, start, n, size, id_len, reporter, rep_role, angle=False,
 
 def _dec_nodeframe3(raw: bytes, aoa: bool = False):
     role, ident = raw[4], raw[5]
-    f = {
+    f: dict[str, object] = {
         "role": role,
         "id": ident,
         "local_time": _u32(raw, 6),
@@ -156,7 +156,7 @@ def _dec_nodeframe3(raw: bytes, aoa: bool = False):
 
 def _dec_nodeframe5(raw: bytes):
     role, ident = raw[4], _u32(raw, 5)
-    f = {
+    f: dict[str, object] = {
         "role": role,
         "id": ident,
         "local_time": _u32(raw, 9),
@@ -170,7 +170,7 @@ def _dec_nodeframe5(raw: bytes):
 
 def _dec_nodeframe2(raw: bytes):
     role, ident = raw[4], raw[5]
-    f = {
+    f: dict[str, object] = {
         "role": role,
         "id": ident,
         "system_time": _u32(raw, 6),
@@ -191,7 +191,7 @@ def _dec_nodeframe2(raw: bytes):
 
 def _dec_nodeframe4(raw: bytes):
     role, ident = raw[4], raw[5]
-    f = {
+    f: dict[str, object] = {
         "role": role,
         "id": ident,
         "local_time": _u32(raw, 6),
@@ -222,7 +222,7 @@ def _dec_nodeframe4(raw: bytes):
 
 
 def _dec_nodeframe1(raw: bytes):
-    f = {
+    f: dict[str, object] = {
         "role": raw[4],
         "id": raw[5],
         "system_time": _u32(raw, 6),
@@ -242,7 +242,7 @@ def _dec_nodeframe1(raw: bytes):
 def _dec_data(raw: bytes, id_len: int):
     """NodeFrame0 / NodeFrame6: data transmission blocks; the walk must end at the checksum."""
     fixed = 11 if id_len == 1 else 14
-    f = {"role": raw[4], "id": raw[5] if id_len == 1 else _u32(raw, 5)}
+    f: dict[str, object] = {"role": raw[4], "id": raw[5] if id_len == 1 else _u32(raw, 5)}
     end = len(raw) - 1
     o = fixed
     nodes = []
@@ -272,7 +272,7 @@ def _dec_tagframe0(raw: bytes):
     if not (0.81 <= qn <= 1.21 or raw[88:104] == bytes(16)):
         raise FrameError("TagFrame0: quaternion is neither unit nor zero")
     dis = tuple(_i24(raw, 22 + 3 * k) / 1000.0 for k in range(8))
-    f = {
+    f: dict[str, object] = {
         "id": ident,
         "role": role,
         "pos": tuple(_i24(raw, 4 + 3 * i) / 1000.0 for i in range(3)),
@@ -298,7 +298,8 @@ def _dec_anchorframe0(raw: bytes):
     role = raw[894]
     if role >= 16:
         raise FrameError(f"AnchorFrame0: implausible role byte {role}")
-    slots, ranges = [], []
+    slots: list[dict[str, object]] = []
+    ranges: list[Range] = []
     for s in range(30):
         o = 2 + 27 * s
         ident = raw[o]
@@ -315,7 +316,7 @@ def _dec_anchorframe0(raw: bytes):
         ranges.extend(
             Range(me, node_id(1, k), d, math.nan, math.nan, _role(srole), "anchor") for k, d in enumerate(dis) if d != 0
         )
-    f = {
+    f: dict[str, object] = {
         "nodes": tuple(slots),
         "local_time": _u32(raw, 879),
         "voltage": _u16(raw, 887) / 1000.0,
