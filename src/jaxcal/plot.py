@@ -494,7 +494,7 @@ def posterior_grids(
     axis_m: np.ndarray,
     grids: np.ndarray,
     node_ids: Sequence[str],
-    epochs: Sequence[int],
+    epochs: Sequence[int] | np.ndarray,
     truth: np.ndarray | None = None,
     estimates: np.ndarray | None = None,
     floor: float = 1e-6,

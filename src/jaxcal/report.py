@@ -251,12 +251,27 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_") or "x"
 
 
+def _frame(result: Result) -> tuple[int, int, int]:
+    """The frame nodes (a0, a1, a2) of a mesh result (every mesh result has them)."""
+    frame = result.frame_anchors()
+    if frame is None:
+        raise JaxcalError(f"result {result.name or result.method!r} has no mesh frame")
+    return frame
+
+
+def _truth(dataset: MeshDataset) -> np.ndarray:
+    """The dataset's true node positions (`report` refuses a dataset without them)."""
+    if dataset.truth is None:
+        raise JaxcalError(f"{dataset.name}: the truth dataset has no ground truth")
+    return dataset.truth
+
+
 def _epoch_errors(result: Result, dataset: MeshDataset) -> np.ndarray:
     """(K, N) position error per epoch and node in the result's frame (NaN: no estimate); a0 NaN."""
     from jaxcal.metrics import truth_in_result_frame
 
     pos = {v: i for i, v in enumerate(dataset.node_ids)}
-    truth = truth_in_result_frame(result, dataset.truth[[pos[v] for v in result.ids]])
+    truth = truth_in_result_frame(result, _truth(dataset)[[pos[v] for v in result.ids]])
     track = result.track_position if result.track_position is not None else result.position[None]
     e = np.linalg.norm(track - truth[None], axis=2)
     anchors = result.frame_anchors()
@@ -373,7 +388,7 @@ def _mesh_section(
     rows = []
     for label, ev in evals.items():
         node_rmse = np.array([n["rmse_m"] for n in ev["nodes"]])
-        avail = np.array([n["availability"] for n in ev["nodes"]])
+        node_avail = np.array([n["availability"] for n in ev["nodes"]])
         rows.append(
             [
                 label,
@@ -381,7 +396,7 @@ def _mesh_section(
                 _fmt(ev["final_rmse_m"]),
                 _fmt(ev["aligned_rmse_m"]),
                 _fmt(np.nanmedian(node_rmse) if np.isfinite(node_rmse).any() else np.nan),
-                _fmt(100 * np.nanmean(avail), 1),
+                _fmt(100 * np.nanmean(node_avail), 1),
             ]
         )
     page.raw(
@@ -439,7 +454,7 @@ def _mesh_section(
     for lab, e in errors.items():
         m, conf = mc[lab]
         by_method.setdefault(m, {})[conf] = e
-        origin[conf] = groups[lab].frame_anchors()[0]
+        origin[conf] = _frame(groups[lab])[0]
     for m, confs in by_method.items():
         page.figure(
             plot.node_error_distributions(ids, confs, title=f"{m}: per-node position error over epochs", origin=origin),
@@ -447,16 +462,16 @@ def _mesh_section(
             f"Fig. 12a/13a ({m}): per-epoch position errors per node (boxes 25–75 %, "
             "whiskers 5–95 %, diamonds: node RMSE).",
         )
-    node_rmse = {lab: np.array([n["rmse_m"] for n in ev["nodes"]]) for lab, ev in evals.items()}
+    ecdf_rmse = {lab: np.array([n["rmse_m"] for n in ev["nodes"]]) for lab, ev in evals.items()}
     for (
         lab,
         r,
     ) in groups.items():  # a0 has error 0 by construction: leave it out of the distribution
         a = r.frame_anchors()
         if a is not None:
-            node_rmse[lab] = np.delete(node_rmse[lab], a[0])
+            ecdf_rmse[lab] = np.delete(ecdf_rmse[lab], a[0])
     page.figure(
-        plot.rmse_ecdfs(node_rmse, "node RMSE [m]", "ECDF of node RMSE (a0 excluded)"),
+        plot.rmse_ecdfs(ecdf_rmse, "node RMSE [m]", "ECDF of node RMSE (a0 excluded)"),
         "fig12b_ecdf_node_rmse",
         "Fig. 12b/13b: ECDF of the per-node RMSE of every method and configuration.",
     )
@@ -480,7 +495,7 @@ def _mesh_section(
     pos = {v: i for i, v in enumerate(ds.node_ids)}
     for conf, rs in by_conf.items():
         first = next(iter(rs.values()))
-        truth = truth_in_result_frame(first, ds.truth[[pos[v] for v in first.ids]])
+        truth = truth_in_result_frame(first, _truth(ds)[[pos[v] for v in first.ids]])
         est = {lab: (r.position, r.covariance) for lab, r in rs.items()}
         page.figure(
             plot.positions_map(truth, first.ids, est, title=conf),
@@ -511,7 +526,7 @@ def _posterior_section(
             raise JaxcalError(f"--posteriors: no {method} result among the inputs")
         return
     lab, res = cand[0]
-    a0, a1, a2 = res.frame_anchors()
+    a0, a1, a2 = _frame(res)
     ids = list(res.ids)
     if isinstance(spec, PosteriorSpec):
         unknown = [n for n in spec.nodes if n not in ids]
@@ -530,7 +545,7 @@ def _posterior_section(
             pick += [min(others, key=lambda i: fe[i]), max(others, key=lambda i: fe[i])]
         nodes = [ids[i] for i in dict.fromkeys(pick)]
     pos = {v: i for i, v in enumerate(ds.node_ids)}
-    frame_ds = tuple(pos[ids[a]] for a in (a0, a1, a2))
+    frame_ds = (pos[ids[a0]], pos[ids[a1]], pos[ids[a2]])
     k = epochs[-1] + 1
     short = dataclasses.replace(
         ds,
@@ -549,7 +564,7 @@ def _posterior_section(
         note = f" (the result's parameters were not accepted: {e}; default parameters used)"
     rows = [pos[n] for n in nodes]
     grids = info.snapshots[:, rows]
-    truth = truth_in_result_frame(res, ds.truth[[pos[v] for v in ids]])[[ids.index(n) for n in nodes]]
+    truth = truth_in_result_frame(res, _truth(ds)[[pos[v] for v in ids]])[[ids.index(n) for n in nodes]]
     numbers["posteriors"] = {
         "result": lab,
         "nodes": nodes,
@@ -725,7 +740,7 @@ def write_report(
     if ds is None and results:
         raise JaxcalError("calibration results need the truth dataset (--truth)")
     mesh = isinstance(ds, MeshDataset)
-    if ds is not None and (ds.truth if mesh else ds.anchor_truth) is None:
+    if ds is not None and (ds.truth if isinstance(ds, MeshDataset) else ds.anchor_truth) is None:
         raise JaxcalError(f"{ds.name}: the truth dataset has no ground truth")
     if labels is not None and len(labels) != len(results):
         raise JaxcalError(f"labels: {len(labels)} given for {len(results)} results")
@@ -742,7 +757,7 @@ def write_report(
         while lab in groups:
             lab, n = f"{base}#{n}", n + 1
         groups[lab] = r
-    evals = {lab: evaluate(r, ds) for lab, r in groups.items()}
+    evals = {lab: evaluate(r, ds) for lab, r in groups.items()} if ds is not None else {}
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -753,12 +768,12 @@ def write_report(
         _ranging_section(page, ds, numbers)
         done(1)
     if groups:
-        if mesh:
+        if isinstance(ds, MeshDataset):
             _mesh_section(page, ds, groups, evals, numbers)
             done(1)
             _posterior_section(page, ds, groups, evals, posteriors, numbers)
             done(1)
-        else:
+        elif isinstance(ds, TrajectoryDataset):
             _trajectory_section(page, ds, groups, evals, numbers)
             done(1)
     for lab, ev in evals.items():
@@ -775,7 +790,7 @@ def write_report(
             f"dataset {ds.name}: "
             + (
                 f"{ds.n_nodes} nodes, {ds.n_epochs} epochs"
-                if mesh
+                if isinstance(ds, MeshDataset)
                 else f"{len(ds.anchor_ids)} anchors, {ds.range.size:,} ranges"
             )
             + f"; results: {', '.join(groups) or 'none'}"

@@ -189,7 +189,7 @@ def parse_spec(doc: Mapping) -> SweepSpec:
         seeds = s.get("seeds", [0] if "simulate" in s else [-1])
         seeds = seeds if isinstance(seeds, list) else [seeds]
         _need(
-            all(isinstance(x, int) for x in seeds) and seeds,
+            bool(seeds) and all(isinstance(x, int) for x in seeds),
             f"scenarios[{k}].seeds: a list of integers",
         )
         _need("file" not in s or "seeds" not in s, f"scenarios[{k}]: seeds only apply to simulate")
@@ -230,7 +230,9 @@ def plan(spec: SweepSpec) -> Plan:
     """Expand a spec into its runs."""
     names = [n for n, _ in spec.grid]
     combos = list(itertools.product(*(v for _, v in spec.grid))) or [()]
-    ds, ds_of, vals = [], [], {n: [] for n in names}
+    ds: list = []
+    ds_of: list[int] = []
+    vals: dict[str, list] = {n: [] for n in names}
     for si, sc in enumerate(spec.scenarios):
         for seed in sc.seeds:
             ds.append((si, seed))
@@ -278,7 +280,8 @@ def build_groups(datasets: Sequence[tuple[MeshDataset, str | None]], spec: Sweep
     keys: dict[tuple[int, int], list[int]] = {}
     for d, (w, *_rest) in enumerate(prepared):
         keys.setdefault((w.n_nodes, w.n_epochs), []).append(d)
-    groups, group_of = [], np.zeros(len(prepared), np.int64)
+    groups: list = []
+    group_of = np.zeros(len(prepared), np.int64)
     for members in keys.values():
         grid = max((prepared[d][2].grid for d in members), key=lambda g: g.n_half)
         cfg = dataclasses.replace(prepared[members[0]][2], grid=grid)
@@ -447,7 +450,7 @@ def execute(
             elif g.cfg.window and not g.cfg.n_snap:  # lockstep chunks, one driver per device
                 out = _gather(_run_lockstep(g, host, mesh, spec.batch_size))
             else:  # the one-scan likelihoods: one vmapped scan (both branches of every cond)
-                out = _gather(run_batch(g.cfg, *_shard(host, mesh), g.span_m))
+                out = _gather(run_batch(g.cfg, *_shard(host, mesh), g.span_m))  # type: ignore[call-arg]
                 if progress is not None:
                     progress(int(todo.size))
             yield todo, {k: np.asarray(v, np.float64)[: todo.size] for k, v in out.items()}
@@ -517,4 +520,6 @@ def simulate_or_raise(sc: Scenario, seed: int) -> MeshDataset:
     """The dataset of a `simulate` scenario and seed (overrides passed to `sim.mesh.simulate`)."""
     from jaxcal.sim.mesh import simulate
 
+    if sc.simulate is None:
+        raise JaxcalError("sweep spec: a scenario without `simulate` reads a file")
     return simulate(sc.simulate, seed, **dict(sc.overrides))

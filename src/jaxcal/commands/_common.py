@@ -73,7 +73,7 @@ def _probe_folder(user_path: str, folder: Path) -> None:
     try:
         fd, probe = tempfile.mkstemp(prefix=".jaxcal-probe.", dir=folder)
     except OSError as e:
-        reason = _REASONS.get(e.errno, e.strerror or type(e).__name__)
+        reason = _REASONS.get(e.errno or 0, e.strerror or type(e).__name__)
         raise JaxcalError(f"{user_path}: cannot write in {folder}: {reason}") from None
     os.close(fd)
     os.unlink(probe)
@@ -209,7 +209,7 @@ def parse_config(text: str | None) -> str | tuple[str, str, str] | None:
     ids = tuple(s.strip() for s in t.split(","))
     if len(ids) != 3 or not all(ids) or len(set(ids)) != 3:
         raise JaxcalError(f"--config: expected a configuration name or three distinct node ids A0,A1,A2, got {text!r}")
-    return ids  # type: ignore[return-value]
+    return ids
 
 
 def resolve_config(ds, text: str | None):

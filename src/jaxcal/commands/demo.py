@@ -194,22 +194,22 @@ def _format_runs(runs: list[dict], node_ids) -> str:
         for i, nid in enumerate(node_ids):
             row = f"{nid:<10}"
             for conf in DEMO_CONFIGS:
-                r = confs.get(conf)
-                if r is None or "error" in r:
+                rc = confs.get(conf)
+                if rc is None or "error" in rc:
                     row += f"{'-':>13}{'-':>8}{'-':>8}"
                 else:
-                    n = r["nodes"][i]
+                    n = rc["nodes"][i]
                     row += f"{f(n['rmse_m'], 13)}{f(n['final_error_m'], 8)}{f(100 * n['availability'], 7, 1)}%"
             lines.append(row)
         tot = f"{'all':<10}"
         tim = f"{'time [s]':<10}"
         for conf in DEMO_CONFIGS:
-            r = confs.get(conf)
-            if r is None or "error" in r:
+            rc = confs.get(conf)
+            if rc is None or "error" in rc:
                 tot += f"{'failed':>29}"
                 tim += f"{'-':>29}"
             else:
-                tot += f"{f(r['rmse_m'], 13)}{f(r['final_rmse_m'], 8)}{'':>8}"
-                tim += f"{f(r['seconds'], 13)}{'':>16}"
+                tot += f"{f(rc['rmse_m'], 13)}{f(rc['final_rmse_m'], 8)}{'':>8}"
+                tim += f"{f(rc['seconds'], 13)}{'':>16}"
         lines += [tot, tim, ""]
     return "\n".join(lines)

@@ -161,7 +161,7 @@ def run(args) -> int:
     elapsed = time.perf_counter() - t0
     c_index = np.asarray(cand.index)
     best = np.where(c_index[:, :1] >= 0, kf_pos[np.maximum(c_index[:, 0], 0)], np.nan)
-    usable = np.isfinite(ranges) & np.isfinite(a_pos).all(axis=1)[None, :]
+    usable = np.isfinite(ranges) & np.asarray(np.isfinite(a_pos).all(axis=1))[None, :]
 
     summary = {
         "db": db_file,
@@ -188,6 +188,8 @@ def run(args) -> int:
     if args.output:
         from pathlib import Path
 
+        assert out is not None  # checked before the work, with the output
+
         places.write_candidates(args.output, q_ids, best, cand, {**settings, "top_k": args.top_k}, Path(q_file).stem)
         summary["output"] = args.output
         summary["overwrote"] = out.existed
@@ -202,5 +204,5 @@ def run(args) -> int:
         if truth is not None:
             g, f = summary["success_gated"], summary["success_full"]
             line += f"; success gated {g:.1%} vs full {f:.1%}"
-        print(line + (f" -> {args.output}{out.note()}" if args.output else ""))
+        print(line + (f" -> {args.output}{out.note()}" if out is not None else ""))
     return 0

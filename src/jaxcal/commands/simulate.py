@@ -57,6 +57,7 @@ def _trajectory_simulator():
 
 def run(args) -> int:
     from jaxcal.commands._common import check_output_path, emit_json, say
+    from jaxcal.data import MeshDataset
     from jaxcal.errors import JaxcalError
     from jaxcal.io import hdf5
 
@@ -75,7 +76,8 @@ def run(args) -> int:
             raise JaxcalError("--scenario network needs --nodes N")
         if args.drift:
             raise JaxcalError("--drift applies to trajectory simulation only")
-        scenario, kwargs = "network", {}
+        scenario = "network"
+        kwargs: dict = {}
         SCENARIOS = {
             scenario: network_scenario(
                 args.nodes,
@@ -110,7 +112,7 @@ def run(args) -> int:
         "output": args.output,
         "overwrote": out.existed,
     }
-    if args.kind == "mesh":
+    if isinstance(ds, MeshDataset):
         summary.update(nodes=ds.n_nodes, epochs=ds.n_epochs)
     else:
         summary.update(anchors=ds.n_anchors, ranges=ds.n_ranges)

@@ -175,8 +175,8 @@ def run(args) -> int:
     pl = S.plan(spec)
     writer = jax.process_index() == 0
     # batch size changes neither runs nor results: it is not part of the identity of a sweep
-    ident = hashlib.sha256(repr((spec.method, spec.epochs, spec.params, spec.grid, spec.scenarios)).encode())
-    ident = ident.hexdigest()
+    identity = repr((spec.method, spec.epochs, spec.params, spec.grid, spec.scenarios))
+    ident = hashlib.sha256(identity.encode()).hexdigest()
     runs = {
         "scenario": np.asarray([spec.scenarios[pl.datasets[d][0]].label for d in pl.dataset_of]),
         "config": np.asarray([spec.scenarios[pl.datasets[d][0]].config or "" for d in pl.dataset_of]),
