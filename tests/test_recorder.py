@@ -514,7 +514,7 @@ def test_live_pgp_replay_converges_and_equals_batch(tmp_path, capsys):
 
 
 def test_live_pgp_restarts_for_a_late_node(tmp_path, capsys):
-    from jaxcal.io.live import LiveCalibrator
+    from jaxcal.live import LiveCalibrator
     from jaxcal.mesh.pgp import run_pgp
 
     cap = tmp_path / "late.bin"
@@ -582,7 +582,7 @@ def test_live_pgp_failures_keep_the_recording(tmp_path):
 def test_live_pgp_over_a_pty_runs_during_the_recording(tmp_path):
     """The serial path: record_serial calls the live filter at each flush while frames still arrive."""
     from jaxcal.io.capture import record_serial
-    from jaxcal.io.live import LiveCalibrator
+    from jaxcal.live import LiveCalibrator
 
     master, slave, port = _pty()
     data = live_capture(500, seed=7)

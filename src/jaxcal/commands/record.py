@@ -15,7 +15,7 @@ or kill, `jaxcal record --replay OUT.h5.journal -o OUT.h5` rebuilds OUT.h5 (and 
 Exit status: 0 done (--duration, end of a replay); 130 Ctrl-C (SIGINT) and 143 SIGTERM, the file complete;
 3 the device was lost and did not come back within --reconnect seconds, the file complete up to then;
 2 bad input or nothing to write.
-`--calibrate pgp` is live (`jaxcal.io.live`: startup and restart rules, the settled flag): the filter
+`--calibrate pgp` is live (`jaxcal.live`: startup and restart rules, the settled flag): the filter
 runs on the epochs as they close, at each flush (replay: each second of frame time), node positions go
 to stderr, and OUT.pgp.h5 holds the live result (its track: every epoch's live estimate). The recording
 is always written first; a calibration failure is then reported in one line (exit 2).
@@ -141,7 +141,7 @@ def run(args) -> int:
     params = _overrides(args.set)
     live = None
     if args.calibrate == "pgp":
-        from jaxcal.io.live import LiveCalibrator
+        from jaxcal.live import LiveCalibrator
 
         frame = _frame_ids(args.config, args.replay)
         live = LiveCalibrator(params, frame, min_epochs=args.min_epochs, stream=None if args.quiet else sys.stderr)
