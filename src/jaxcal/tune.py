@@ -144,7 +144,7 @@ def make_problem(
         tau_temp: temperature of the soft cut (mass units; 0 gives the hard rule, not differentiable
             in tau). remat: checkpoint every epoch (memory ~ epochs x carry).
         est_temp: temperature of the `truth` objective's estimate (`soft_estimates`, nats).
-        segment: epochs per checkpointed segment of the scan (None: ceil(sqrt(epochs))).
+        segment: epochs per checkpointed segment of the scan (None: `segment_length(epochs)`).
         tail_from, states: differentiate only epochs `tail_from:` of the dataset, from these
             filter states before epoch `tail_from` (one per fold for evidence, in `pair_folds`'
             order, else one; e.g. `tune_eval.heldout_split`'s); float arrays are cast to the
@@ -491,7 +491,7 @@ def tune(
         epochs, cell_m: a cheaper surrogate for the gradient phase (None: what calibrate runs).
         tail: differentiate the last `tail` epochs only (None or >= the epochs: all of them).
         tau_temp: temperature of the soft tau cut. max_steps, rtol, atol: BFGS settings.
-        segment: epochs per checkpointed segment (None: ceil(sqrt(K))).
+        segment: epochs per checkpointed segment (None: `segmented.segment_length(K)`, about sqrt(K)).
         progress: called with 1 after every BFGS step. on_step: called with (step, objective at
             the last accepted point). on_phase: called with a short text when the guard starts
             a run (calibrate's runs of the start, then of the tuned values).
