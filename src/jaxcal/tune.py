@@ -321,7 +321,8 @@ def _bfgs(theta0, prob: Problem, rtol: float, atol: float, max_steps: int, on_st
     first = best = math.nan
     rejected, small = 0, False
     done, result = terminate(theta, state, prob)
-    while not bool(done) and steps < max_steps and rejected < PATIENCE and not small:
+    # the first step evaluates the start and does not move: it runs even with max_steps = 0
+    while not bool(done) and steps < max(max_steps, 1) and rejected < PATIENCE and not small:
         n_acc = int(state.num_accepted_steps)
         theta, state, _ = step(theta, state, prob)
         steps += 1
