@@ -10,7 +10,8 @@ Simulated families (tune on the first seed, report on the others; no truth used 
   frame (0, 1, 2): tuned on one layout, reported on others.
 
 Real: the three dwm1001-autocal scenarios in ../shared/datasets (skipped when absent): evidence
-tuning on the recording itself (the objective needs no truth), the truth only for the RMSE.
+tuning on the recording itself (the objective needs no truth), the truth only for the RMSE; the
+gradient phase on the same `--tune-epochs` / `--tune-cell` as the simulated families.
 
 Per row: RMSE over localised node-epochs (a0 excluded, configuration frame; `jaxcal evaluate`'s
 figure) of `calibrate`'s run with the defaults and with the params `tune` returned (after its
@@ -44,10 +45,10 @@ REAL = [
 ]
 # family: (scenario, config, fixed params, overrides, train seed, test seeds)
 FAMILIES = {
-    "torgau-conf1": ("torgau", "conf1", {}, {}, 0, [3, 4]),
-    "torgau-conf2": ("torgau", "conf2", {}, {}, 1, [5, 6]),
-    "torgau-mixture": ("torgau", "conf1", {"range_model": "mixture"}, {}, 2, [7, 8]),
-    "random-layout": ("torgau", None, {}, {"positions": None}, 10, [11, 12]),
+    "torgau-conf1": ("torgau", "conf1", {}, {}, 0, [3, 4, 13, 14]),
+    "torgau-conf2": ("torgau", "conf2", {}, {}, 1, [5, 6, 15, 16]),
+    "torgau-mixture": ("torgau", "conf1", {"range_model": "mixture"}, {}, 2, [7, 8, 17, 18]),
+    "random-layout": ("torgau", None, {}, {"positions": None}, 10, [11, 12, 19, 20]),
 }
 
 
@@ -64,9 +65,12 @@ def main() -> None:
     ap.add_argument("--objective", default="evidence")
     ap.add_argument("--families", default=",".join(FAMILIES))
     ap.add_argument("--no-real", action="store_true")
-    ap.add_argument("--tests", type=int, default=2, help="test seeds per family (at most 2)")
+    ap.add_argument("--tests", type=int, default=2, help="test seeds per family (at most 4)")
     ap.add_argument("--real-first", action="store_true", help="the dwm1001 rows before the families")
     a = ap.parse_args()
+    from jaxcal import compile_cache
+
+    compile_cache.enable()  # as the command line: programs compiled once per machine
     rows = []
 
     def emit(row):
@@ -82,8 +86,16 @@ def main() -> None:
         for folder, cfg in REAL:
             yaml_path = DWM / "nodes_cfg" / f"{cfg}.yaml"
             ds = import_recording("dwm1001-autocal", DWM / folder, yaml_path)
-            t = time.perf_counter()
-            res = tune(ds, {}, "conf1", objective_name="evidence", max_steps=a.max_steps)
+            t, c = time.perf_counter(), time.process_time()
+            res = tune(
+                ds,
+                {},
+                "conf1",
+                objective_name="evidence",
+                epochs=a.tune_epochs,
+                cell_m=a.tune_cell,
+                max_steps=a.max_steps,
+            )
             emit(
                 {
                     "family": f"dwm1001/{cfg}",
@@ -97,7 +109,10 @@ def main() -> None:
                     "heldout_default_m": res.hard_before.get("heldout_m"),
                     "heldout_tuned_m": res.hard_after.get("heldout_m"),
                     "steps": res.steps,
+                    "message": res.message,
+                    "guard_gain_t": res.settings["guard_gain_t"],
                     "seconds": round(time.perf_counter() - t, 1),
+                    "cpu_seconds": round(time.process_time() - c, 1),
                 }
             )
 
@@ -106,7 +121,7 @@ def main() -> None:
     for fam in [f for f in a.families.split(",") if f]:
         name, config, fixed, over, train, tests = FAMILIES[fam]
         tests = tests[: a.tests]
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         res = tune(
             sim(name, train, over, a.epochs),
             fixed,
@@ -132,7 +147,9 @@ def main() -> None:
                 "rmse_tuned_m": (res.hard_after if res.accepted else res.hard_before)["rmse_m"],
                 "grad_epochs": res.settings["epochs"],
                 "grad_cell_m": res.settings["cell_m"],
+                "guard_gain_t": res.settings["guard_gain_t"],
                 "seconds": round(time.perf_counter() - t, 1),
+                "cpu_seconds": round(time.process_time() - c, 1),
                 "seconds_gradient_phase": round(res.seconds["tune"], 1),
             }
         )

@@ -144,7 +144,7 @@ def make_problem(
         tau_temp: temperature of the soft cut (mass units; 0 gives the hard rule, not differentiable
             in tau). remat: checkpoint every epoch (memory ~ epochs x carry).
         est_temp: temperature of the `truth` objective's estimate (`soft_estimates`, nats).
-        segment: epochs per checkpointed segment of the scan (None: ceil(sqrt(epochs))).
+        segment: epochs per checkpointed segment of the scan (None: `segment_length(epochs)`).
         tail_from, states: differentiate only epochs `tail_from:` of the dataset, from these
             filter states before epoch `tail_from` (one per fold for evidence, in `pair_folds`'
             order, else one; e.g. `tune_eval.heldout_split`'s); float arrays are cast to the
@@ -291,8 +291,20 @@ def soft_estimates(
 
 
 def _bfgs(theta0, prob: Problem, rtol: float, atol: float, max_steps: int, on_step=None):
-    """Optimistix BFGS stepped from Python (one objective-and-gradient evaluation per step), so
-    that a caller can show progress. Returns (theta, steps, converged, message)."""
+    """Optimistix BFGS stepped from Python (one objective evaluation per step, its gradient when
+    the line search accepts the point), so that a caller can show progress.
+
+    The values come from the solver's own evaluations, not from extra runs of the objective: the
+    first step evaluates the start (always accepted), and the state keeps the value of the last
+    accepted point, which is what is returned. Stops early when an accepted step after the first
+    move (a plain gradient step, whose length is the gradient's) lowers the value by less than
+    `rtol` (relative: the surrogate's last digits, far inside what the guard can tell apart), or
+    after `PATIENCE` steps in a row that the line search rejects.
+
+    Returns:
+        (theta: the last accepted point, steps, converged, message, value at theta0, value at
+        theta).
+    """
     solver = optx.BFGS(rtol=rtol, atol=atol)
 
     def fn(theta, args):
@@ -306,35 +318,44 @@ def _bfgs(theta0, prob: Problem, rtol: float, atol: float, max_steps: int, on_st
     terminate = eqx.filter_jit(lambda y, state, args: solver.terminate(fn, y, args, opts, state, tags))
     state = solver.init(fn, theta0, prob, opts, f_struct, f_struct, tags)
     theta, steps = theta0, 0
-    best, stale = math.inf, 0
+    first = best = math.nan
+    rejected, small = 0, False
     done, result = terminate(theta, state, prob)
-    while not bool(done) and steps < max_steps and stale < PATIENCE:
-        theta, state, value = step(theta, state, prob)
+    # the first step evaluates the start and does not move: it runs even with max_steps = 0
+    while not bool(done) and steps < max(max_steps, 1) and rejected < PATIENCE and not small:
+        n_acc = int(state.num_accepted_steps)
+        theta, state, _ = step(theta, state, prob)
         steps += 1
-        v = float(value)
+        v = float(state.f_info.f)  # the objective at theta, the last accepted point
+        if steps == 1:
+            first = best = v
+            if not math.isfinite(v):
+                break
+        elif int(state.num_accepted_steps) > n_acc:
+            # the first move is the gradient itself (identity Hessian): its size says nothing
+            # about what is left to gain, so the small-gain stop applies from the second move on
+            small = int(state.num_accepted_steps) > 2 and v > best - rtol * abs(best)
+            best, rejected = min(best, v), 0
+        else:
+            rejected += 1
         if on_step is not None:
             on_step(steps, v)
-        # the value at the step's (trial) point: a line search that keeps shrinking its step
-        # without lowering the objective by rtol is not going anywhere
-        stale = 0 if v < best - rtol * abs(best) else stale + 1
-        best = min(best, v)
         done, result = terminate(theta, state, prob)
     ok = bool(done) and result == optx.RESULTS.successful
     if ok:
         message = "converged"
     elif bool(done):
         message = str(optx.RESULTS[result]).split(".")[0]
-    elif stale >= PATIENCE:
+    elif small:
+        message = f"last step gained < {rtol:g} (relative)"
+    elif rejected >= PATIENCE:
         message = f"no progress in {PATIENCE} steps"
     else:
         message = f"stopped at {max_steps} steps"
-    return theta, steps, ok, message
+    return theta, steps, ok, message, first, float(state.f_info.f)
 
 
-PATIENCE = 4  # BFGS steps without lowering the objective by rtol before `_bfgs` stops
-
-
-_value = eqx.filter_jit(objective)
+PATIENCE = 4  # line-search rejections in a row before `_bfgs` stops
 
 
 @dataclasses.dataclass(frozen=True)
@@ -351,7 +372,9 @@ class TuneResult:
         before, after: the gradient objective (soft cut, on the tuning data) at start and end.
         hard_before, hard_after: `check` of the start and of the tuned values: the filter exactly
             as `calibrate` runs it (hard cut, its cell size and likelihood path, the whole dataset)
-            {rmse_m, final_rmse_m, availability, nlpl[, heldout_m]}.
+            {rmse_m, final_rmse_m, availability, nlpl[, heldout_m]}. When the held-out guard
+            keeps the start, `hard_after` is {heldout_m} alone (the plain run of values that are
+            not written is skipped).
         accepted: whether the tuned values are better than the start under the guard's figure
             (`hard_key`: `rmse_m` for truth, the held-out range error for evidence).
         steps: BFGS steps. converged: whether BFGS met its tolerance. message: how it ended.
@@ -392,6 +415,11 @@ def hard_key(objective_name: str, hard_before: dict) -> str:
 
 
 GUARD_T = 1.0  # held-out guard: the per-pair gain must exceed one standard error (t > 1)
+
+
+def _better(before: float, after: float) -> bool:
+    """The guard's plain comparison: `after` finite and lower (or `before` undefined)."""
+    return math.isfinite(after) and (not math.isfinite(before) or after < before)
 
 
 def check(dataset: MeshDataset, params, config: str | None, objective_name: str) -> dict:
@@ -436,6 +464,7 @@ def tune(
     tail: int | None = None,
     progress: ProgressCallback | None = None,
     on_step: Callable[[int, float], None] | None = None,
+    on_phase: Callable[[str], None] | None = None,
 ) -> TuneResult:
     """Fit sigma_r, sigma_v and tau (and with `range_model="mixture"` nlos_weight and
     nlos_mean_m) of the PGP filter by BFGS; keep them only if `calibrate` does better with them.
@@ -463,8 +492,10 @@ def tune(
         epochs, cell_m: a cheaper surrogate for the gradient phase (None: what calibrate runs).
         tail: differentiate the last `tail` epochs only (None or >= the epochs: all of them).
         tau_temp: temperature of the soft tau cut. max_steps, rtol, atol: BFGS settings.
-        segment: epochs per checkpointed segment (None: ceil(sqrt(K))).
-        progress: called with 1 after every BFGS step. on_step: called with (step, objective).
+        segment: epochs per checkpointed segment (None: `segmented.segment_length(K)`, about sqrt(K)).
+        progress: called with 1 after every BFGS step. on_step: called with (step, objective at
+            the last accepted point). on_phase: called with a short text when the guard starts
+            a run (calibrate's runs of the start, then of the tuned values).
 
     Returns:
         A `TuneResult`; `params` go into `jaxcal calibrate --params`.
@@ -507,9 +538,6 @@ def tune(
             nlos_weight=params.nlos_weight if mix else None,
             nlos_mean_m=params.nlos_mean_m,
         )
-        before = float(_value(theta0, prob))
-        if not math.isfinite(before):
-            raise JaxcalError(f"{dataset.name}: the objective is undefined at the start (no node localised?)")
 
         def step_cb(k, v):
             if progress is not None:
@@ -517,29 +545,35 @@ def tune(
             if on_step is not None:
                 on_step(k, v)
 
-        theta, steps, ok, message = _bfgs(theta0, prob, rtol, atol, max_steps, step_cb)
-        after = float(_value(theta, prob))
+        theta, steps, ok, message, before, after = _bfgs(theta0, prob, rtol, atol, max_steps, step_cb)
+        if not math.isfinite(before):
+            raise JaxcalError(f"{dataset.name}: the objective is undefined at the start (no node localised?)")
         if not math.isfinite(after) or after > before:  # the optimiser's end is never worse
             theta, after = theta0, before
     t1 = time.perf_counter()
     start, tuned = values_of(theta0), values_of(theta)
+    if on_phase is not None:
+        on_phase("guard: calibrate's runs of the start")
     hard_before, pairs_before = _check(dataset, params, config, objective_name, pairs_before)
-    hard_after, pairs_after = (
-        (dict(hard_before), pairs_before)  # the optimiser did not move: nothing to check
-        if tuned == start
-        else _check(dataset, with_overrides(params, tuned), config, objective_name)
-    )
+    if on_phase is not None and tuned != start:
+        on_phase("guard: calibrate's runs of the tuned values")
     key = hard_key(objective_name, hard_before)
-    accepted = math.isfinite(hard_after[key]) and (
-        not math.isfinite(hard_before[key]) or hard_after[key] < hard_before[key]
-    )
     gain_t = math.nan
-    if key == "heldout_m" and accepted and tuned != start:
+    tuned_params = with_overrides(params, tuned)
+    if tuned == start:  # the optimiser did not move: nothing to check
+        hard_after, accepted = dict(hard_before), False
+    elif key == "heldout_m":
+        pairs_after = tune_eval.heldout_pair_errors(dataset, tuned_params, config)
+        hard_after = {"heldout_m": tune_eval.mean_pair_error(pairs_after)}
         # a gain within the pairs' own scatter is noise (measured: accepted gains of 1e-4 m came
         # with 1-2.5 % worse RMSE): the per-pair gain must exceed one standard error
         gain_t = tune_eval.paired_gain_t(pairs_before, pairs_after)
-        if not math.isnan(gain_t):  # NaN: fewer than 2 comparable pairs, the plain comparison stands
-            accepted = gain_t > GUARD_T
+        accepted = _better(hard_before[key], hard_after[key]) and (math.isnan(gain_t) or gain_t > GUARD_T)
+        if accepted:  # calibrate's plain run of the values written (skipped when the start is kept)
+            hard_after = {**tune_eval.hard_metrics(dataset, tuned_params, config), **hard_after}
+    else:
+        hard_after = check(dataset, tuned_params, config, objective_name)
+        accepted = _better(hard_before[key], hard_after[key])
     return TuneResult(
         params=tuned if accepted else start,
         start=start,

@@ -93,13 +93,18 @@ def _summary(res, objective: str, out) -> str:
         f" at {st['cell_m']:g} m cells, guard on calibrate's run ({st['check_epochs']} epochs, "
         f"{st['check_cell_m']:g} m)"
     )
-    head = f"tune {objective}: {res.steps} steps ({res.message}; {on}); start {fmt(res.start)}"
+    used = st.get("objective_used", objective)
+    name = objective if used == objective else f"{objective} (fewer than 5 nodes, no pair to hold out: {used})"
+    head = f"tune {name}: {res.steps} steps ({res.message}; {on}); start {fmt(res.start)}"
+    t = st.get("guard_gain_t", float("nan"))
     if res.accepted:
+        why = f"better by t = {t:.2f} > {st.get('guard_t_min', 1.0):g}" if t == t else "better"
         return (
             f"{head}; tuned {fmt(res.tuned)}; calibrate's {k} {hb:.4g} -> {ha:.4g}{unit}"
-            f" (better: tuned values written) -> {out}"
+            f" ({why}: tuned values written) -> {out}"
         )
-    t = st.get("guard_gain_t", float("nan"))
+    if res.tuned == res.start:
+        return f"{head}; the optimiser did not move: calibrate's {k} {hb:.4g}{unit}; kept the start values -> {out}"
     if k == "heldout_m" and ha < hb and t == t:  # better on average, but within the pairs' scatter
         return (
             f"{head}; tuned {fmt(res.tuned)}: calibrate's {k} {hb:.4g} -> {ha:.4g}{unit} is within "
@@ -163,6 +168,7 @@ def run(args) -> int:
             max_steps=args.max_steps,
             progress=bar.update,
             on_step=on_step,
+            on_phase=bar.set_postfix_str,
         )
     from jaxcal.mesh.pgp import PGPParams
     from jaxcal.params import with_overrides
