@@ -347,7 +347,6 @@ def calibrate_anchor_mean(dataset, p, groups, info, n: int, planar) -> Result:
 
     (est, cov, hyp, bias, _), codes, steps = S.retry_unconverged(fit, p.max_steps)
     est, cov, bias = np.array(est), np.array(cov), np.array(bias)
-    fitted = est.copy()
     spread_gp = cone_spread(pos, rng_m, mask, est)
     spread_nls = cone_spread(pos, rng_m, mask, a0)
     # Guard (module doc, step 3): f absorbed the geometry; the anchor no longer explains its ranges.
@@ -365,8 +364,9 @@ def calibrate_anchor_mean(dataset, p, groups, info, n: int, planar) -> Result:
             est[a] = fuse(a0[a], cov0[a], est[a], cov[a])
         if planar[a]:  # a flat path does not observe the height: the GP does not move it either
             est[a, 2] = a0[a, 2]
+        proposed = est[a].copy()
         est[a] = bound_step(a0[a], cov0[a], est[a], p.max_shift_sigma)
-        bounded[a] = not np.allclose(est[a], fitted[a])
+        bounded[a] = not np.allclose(est[a], proposed)  # the bound shortened the step (fused or not)
         d = est[a] - a0[a]
         cov[a] = widen_covariance(cov[a], cov0[a] + np.outer(d, d))
     info = dict(
