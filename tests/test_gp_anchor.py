@@ -119,3 +119,37 @@ def test_default_gp_is_bounded_by_nls_and_no_more_confident():
         bound = res.params["max_shift_sigma"] ** 2 + 1e-6
         assert d @ np.linalg.solve(ref.covariance[a], d) <= bound
         assert np.linalg.eigvalsh(res.covariance[a] - ref.covariance[a]).min() > -1e-9
+
+
+def test_hyper_penalty_is_zero_inside_the_bounds_and_quadratic_outside():
+    h = gp.Hyper(jnp.log(5.0), jnp.log(0.01), jnp.log(0.1))
+    assert float(gp_anchor.hyper_penalty(h, jnp.log(10.0), jnp.log(1e-3))) == 0.0
+    out = gp.Hyper(jnp.log(10.0) + 0.5, jnp.log(1e-3) - 0.25, jnp.log(0.1))
+    # 0.5 (0.5 / 0.25)^2 + 0.5 (0.25 / 0.25)^2
+    assert float(gp_anchor.hyper_penalty(out, jnp.log(10.0), jnp.log(1e-3))) == pytest.approx(2.5)
+
+
+def test_mean_model_fit_without_correlated_error_stays_inside_the_bounds(rng):
+    """Ranges with white noise only: the marginal likelihood is largest at signal variance 0 (the
+    unbounded BFGS walks log s^2 and then log l away, campus: s = 1e-5 m, l = 1e12 m); with the
+    kernel's soft bounds the fit stays near the floor and the ceiling, and places the anchor."""
+    import equinox as eqx
+
+    n = 120
+    t = np.linspace(0, 2 * np.pi, n)
+    x = np.c_[20 * np.cos(t), 12 * np.sin(2 * t), 1.5 + 0.8 * np.sin(3 * t)] + rng.normal(0, 0.5, (n, 3))
+    anchor = np.array([4.0, -3.0, 6.0]) + rng.normal(0, 1.0, 3)
+    noise = 0.1
+    r = np.linalg.norm(x - anchor, axis=1) + rng.normal(0, noise, n)
+    xc = x - x.mean(axis=0)
+    hyper = gp.Hyper(jnp.log(5.0), jnp.log(0.005), jnp.log(0.005))
+    init = gp_anchor.MeanModel(jnp.asarray(anchor - x.mean(axis=0) + 0.2), jnp.array(0.0), hyper)
+    radius = np.linalg.norm(xc, axis=1).max()
+    floor = 1e-4 * noise**2
+    bounds = (jnp.log(radius), jnp.log(floor))
+    fit = eqx.filter_jit(gp_anchor._fit_mean_model)
+    th, _, _ = fit(jnp.asarray(xc), jnp.asarray(r), jnp.ones(n, bool), init, 1.5, 1e-6, 200, "range", None, bounds)
+    assert float(th.hyper.log_variance) > np.log(floor) - 1.0
+    assert float(th.hyper.log_length) < np.log(radius) + 1.0
+    est = np.asarray(th.anchor) + x.mean(axis=0)
+    assert np.linalg.norm(est - anchor) < 0.5

@@ -81,6 +81,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float
 
 from jaxcal import solver as S
+from jaxcal.blas_threads import one_blas_thread
 from jaxcal.data import Result
 from jaxcal.errors import JaxcalError
 from jaxcal.params import with_overrides
@@ -143,6 +144,10 @@ class GPParams(TrajectoryParams):
             residual) so that outliers do not bend the GP.
         combine: `mean=anchor` only: `fuse` (the GP's anchor and the `nls` answer averaged with
             their precisions, then bounded) or `bound` (the GP's anchor, bounded).
+        max_length, min_signal: `mean=anchor` only: soft bounds on the kernel (`gp_anchor.hyper_penalty`):
+            length scale at most `max_length` times the radius of the training inputs about their
+            centroid, signal variance at least `min_signal` times the variance of the `nls` residuals
+            (max_length = 0: no bounds).
         block, max_ranges: `mean=anchor` only: the GP's covariance is block-diagonal over blocks
             of `block` consecutive ranges, on at most `max_ranges` ranges per anchor (evenly thinned
             in time); `block=0` (default): one dense GP on the stratified `n_train` subsample.
@@ -157,7 +162,7 @@ class GPParams(TrajectoryParams):
     n_bins: int = 10
     seed: int = 0
     jitter: float = 1e-6
-    max_steps: int = 100
+    max_steps: int = 200
     grid: int = 11
     top_k: int = 10
     shrink: float = 0.5
@@ -169,6 +174,8 @@ class GPParams(TrajectoryParams):
     max_shift_sigma: float = 3.0
     robust: bool = True
     combine: str = "fuse"
+    max_length: float = 1.0
+    min_signal: float = 1e-4
     block: int = 0
     max_ranges: int = 4096
 
@@ -560,6 +567,7 @@ def _calibrate_all(x, r, mask, centre, half, planar, p: GPParams, n_rounds: int,
 
 
 @in_float64
+@one_blas_thread
 def calibrate(dataset, params=None, config=None, progress=None) -> Result:
     """`--method gp`: GP regression of the range per anchor, then the anchor search (frame `world`).
 

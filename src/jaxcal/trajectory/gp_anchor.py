@@ -61,6 +61,7 @@ __all__ = [
     "cone_spread",
     "cauchy_weights",
     "bound_step",
+    "hyper_penalty",
     "widen_covariance",
     "fuse",
     "calibrate_anchor_mean",
@@ -152,14 +153,33 @@ def fit_mean_model(
     return _fit_mean_model(x, r, mask, init, nu, jitter, max_steps, target, noise_scale)[:2]
 
 
-def _fit_mean_model(x, r, mask, init: MeanModel, nu, jitter, max_steps, target, noise_scale):
-    """`fit_mean_model` plus the outcome code of the BFGS fit (`jaxcal.solver.outcome`)."""
+def hyper_penalty(h: Hyper, log_max_length, log_min_variance):
+    """Soft bounds on the kernel: 0.5 (x / 0.25)^2 for x the excess of log l over `log_max_length`
+    and of `log_min_variance` over log s^2 (0 inside the bounds).
+
+    Where the ranges show no spatially correlated error the marginal likelihood is largest at s^2 = 0
+    (f vanishes: the GP is `nls` on the subsample) and flat along log s^2 -> -inf and then along log l:
+    BFGS walked there for 5 of the 10 campus anchors (s = 1e-5 m, l = 1e9-1e12 m, more than 100 steps,
+    then the 4x retry of `jaxcal.solver.retry_unconverged`). The floor on s^2 (far below the residual
+    variance, so f stays negligible) and the ceiling on l (beyond the data a Matern f is a constant
+    plus a trend, which trade with b and the anchor) end those walks.
+    """
+    over = jnp.maximum(h.log_length - log_max_length, 0.0)
+    under = jnp.maximum(log_min_variance - h.log_variance, 0.0)
+    return 0.5 * (over / 0.25) ** 2 + 0.5 * (under / 0.25) ** 2
+
+
+def _fit_mean_model(x, r, mask, init: MeanModel, nu, jitter, max_steps, target, noise_scale, bounds=None):
+    """`fit_mean_model` plus the outcome code of the BFGS fit (`jaxcal.solver.outcome`); `bounds`:
+    (log_max_length, log_min_variance) of `hyper_penalty` (None: none)."""
     n = jnp.maximum(jnp.sum(mask), 1)
 
     def nlml(th):
         if x.ndim == 3:
-            return blocks_nlml(th, x, r, mask, nu, jitter, target, noise_scale)
-        return mean_model_nlml(th, x, r, mask, nu, jitter, target, noise_scale)
+            out = blocks_nlml(th, x, r, mask, nu, jitter, target, noise_scale)
+        else:
+            out = mean_model_nlml(th, x, r, mask, nu, jitter, target, noise_scale)
+        return out if bounds is None else out + hyper_penalty(th.hyper, *bounds)
 
     sol = optx.minimise(
         lambda th, _: nlml(th) / n,
@@ -203,7 +223,11 @@ def _fit_blocks(x, r, mask, noise_scale, init_anchor, init_bias, p):
             b0,
             Hyper(jnp.log(jnp.clip(span, 0.1, 1e3)), jnp.log(0.5 * var_y), jnp.log(0.5 * var_y)),
         )
-        th, cov, code = _fit_mean_model(xc, r, m, init, p.nu, p.jitter, p.max_steps, p.target, s)
+        radius = jnp.max(jnp.where(m, jnp.linalg.norm(xc, axis=-1), 0.0))
+        bounds = None
+        if p.max_length > 0:
+            bounds = (jnp.log(jnp.maximum(p.max_length * radius, 1e-2)), jnp.log(p.min_signal * var_y))
+        th, cov, code = _fit_mean_model(xc, r, m, init, p.nu, p.jitter, p.max_steps, p.target, s, bounds)
         return th.anchor + origin, cov, th.hyper, th.bias, code
 
     # lax.map, not vmap: batched Cholesky gradients are slow on CPU; anchors are independent.
@@ -323,7 +347,6 @@ def calibrate_anchor_mean(dataset, p, groups, info, n: int, planar) -> Result:
 
     (est, cov, hyp, bias, _), codes, steps = S.retry_unconverged(fit, p.max_steps)
     est, cov, bias = np.array(est), np.array(cov), np.array(bias)
-    fitted = est.copy()
     spread_gp = cone_spread(pos, rng_m, mask, est)
     spread_nls = cone_spread(pos, rng_m, mask, a0)
     # Guard (module doc, step 3): f absorbed the geometry; the anchor no longer explains its ranges.
@@ -341,8 +364,9 @@ def calibrate_anchor_mean(dataset, p, groups, info, n: int, planar) -> Result:
             est[a] = fuse(a0[a], cov0[a], est[a], cov[a])
         if planar[a]:  # a flat path does not observe the height: the GP does not move it either
             est[a, 2] = a0[a, 2]
+        proposed = est[a].copy()
         est[a] = bound_step(a0[a], cov0[a], est[a], p.max_shift_sigma)
-        bounded[a] = not np.allclose(est[a], fitted[a])
+        bounded[a] = not np.allclose(est[a], proposed)  # the bound shortened the step (fused or not)
         d = est[a] - a0[a]
         cov[a] = widen_covariance(cov[a], cov0[a] + np.outer(d, d))
     info = dict(
