@@ -45,7 +45,7 @@ from jaxcal import solver as S
 from jaxcal.data import Result
 from jaxcal.params import with_overrides
 from jaxcal.trajectory.common import finish, report_fits
-from jaxcal.trajectory.gp import (
+from jaxcal.trajectory.gp_kernel import (
     Hyper,
     _cone,
     neg_log_marginal_likelihood,
