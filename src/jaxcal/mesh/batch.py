@@ -130,7 +130,11 @@ class BatchParams(eqx.Module):
             the geometry is weak) or `map` (the robust fit itself and its Laplace covariance).
         student_nu: degrees of freedom of the Student-t pair likelihood of `estimate=mean` (1 = Cauchy).
         mcmc_chains, mcmc_steps: Hamiltonian Monte Carlo chains and transitions per chain of
-            `estimate=mean` (the first quarter is burn-in).
+            `estimate=mean` (the first quarter is burn-in; `mcmc_steps` is the most run, see `mcmc_mcse`).
+        mcmc_mcse: the sampler stops before `mcmc_steps` once the Monte Carlo error of the posterior mean is
+            below this share of the posterior standard deviation in every coordinate and split R-hat is
+            below 1.01 (checked every 250 transitions after the burn-in, from the spread of the chains'
+            means); 0 runs every step.
     """
 
     dim: int = 2
@@ -163,6 +167,7 @@ class BatchParams(eqx.Module):
     student_nu: float = 1.0
     mcmc_chains: int = 16
     mcmc_steps: int = 4000
+    mcmc_mcse: float = 0.05
 
     def __check_init__(self):
         for name, allowed in (
@@ -183,6 +188,8 @@ class BatchParams(eqx.Module):
         for name in ("sigma_r", "node_bias_sigma_m", "nlos_mean_m", "outlier_span_m", "tol", "gnc_tol", "student_nu"):
             if not getattr(self, name) > 0:
                 raise JaxcalError(f"parameter {name}: must be > 0, got {getattr(self, name)}")
+        if not self.mcmc_mcse >= 0:
+            raise JaxcalError(f"parameter mcmc_mcse: must be >= 0, got {self.mcmc_mcse}")
         for name in ("nlos_weight", "outlier_weight"):
             if not 0 <= getattr(self, name) < 1:
                 raise JaxcalError(f"parameter {name}: must be in [0, 1), got {getattr(self, name)}")
@@ -813,6 +820,7 @@ def _range_weights(state: _State, obs: Observations, nb: _Numbers) -> Array:
 
 
 _LEAPFROG = 16  # leapfrog steps per HMC transition of `posterior_mean`
+_BLOCK = 125  # transitions per block of `posterior_mean` after the burn-in (its stopping rule's unit)
 
 
 def _split_rhat(s1: Array, s2: Array, n: int) -> Array:
@@ -822,7 +830,7 @@ def _split_rhat(s1: Array, s2: Array, n: int) -> Array:
         s1, s2: (2, C, P) sums and sums of squares of the two halves of C chains, n draws each.
     """
     mean = (s1 / n).reshape(-1, s1.shape[-1])
-    var = ((s2 - s1 * s1 / n) / max(n - 1, 1)).reshape(-1, s1.shape[-1])
+    var = ((s2 - s1 * s1 / n) / jnp.maximum(n - 1, 1)).reshape(-1, s1.shape[-1])
     w = jnp.mean(var, axis=0)
     b = n * jnp.var(mean, axis=0, ddof=1)
     var_plus = (n - 1) / n * w + b / n
@@ -843,6 +851,7 @@ def posterior_mean(
     n_chains: int,
     n_steps: int,
     sample_node_offsets: bool = True,
+    mcse: float = 0.0,
 ):
     """Posterior mean and covariance of the free frame coordinates (and offsets) (`estimate=mean`).
 
@@ -863,6 +872,9 @@ def posterior_mean(
         mask: (m, D) bool, which entries of `template` are free; c, b: the fit's offsets;
         obs: pair observations (padding has weight 0); nb: numbers of the fit; key: PRNG key;
         nu: Student-t degrees of freedom; n_chains, n_steps: static sampler sizes.
+        mcse: static; > 0: stop after the burn-in once the Monte Carlo error of the mean is below mcse
+            posterior sd (and split R-hat below 1.01) in every free coordinate, checked every two blocks of
+            `_BLOCK` transitions; 0: run all n_steps.
         sample_node_offsets: static; False when the model has no per-node offsets (`nb.use_b` off): they
             then enter no range, their posterior is their prior (mean 0, sd `node_bias_sigma_m`,
             independent of the rest), and they are returned as such instead of being sampled (P = F + 1
@@ -955,7 +967,7 @@ def posterior_mean(
         lp = jax.vmap(lambda v: logp(new_center + new_root @ v))(u)
         return (u, lp, carry[2], carry[3])
 
-    k0, kb1, kb2, ka, kc = jax.random.split(key, 5)
+    k0, kb1, kb2, ka = jax.random.split(key, 4)
     root = sqrt_cov(jnp.linalg.inv(info))
     u0 = 0.1 * jax.random.normal(k0, (n_chains, p_dim))
     carry = (u0, jax.vmap(lambda v: logp(theta0 + root @ v))(u0), jnp.asarray(0.5 / p_dim**0.25), jnp.zeros(n_chains))
@@ -967,13 +979,49 @@ def posterior_mean(
     carry = rewhiten(carry, theta0, root, center, new_root)
     root = new_root
     carry, _, _, _ = run(carry, kb2, burn2, center, root, True)
-    half = (n_steps - burn1 - burn2) // 2
-    carry, s1a, s2a, oa = run(carry, ka, half, center, root, False)
-    accept = jnp.sum(carry[3])
-    carry, s1b, s2b, ob = run(carry, kc, half, center, root, False)
-    accept = (accept + jnp.sum(carry[3])) / (2 * half * n_chains)
-    mean, cov = moments(s1a + s1b, oa + ob, 2 * half * n_chains)
-    rhat = _split_rhat(jnp.stack([s1a, s1b])[..., :f], jnp.stack([s2a, s2b])[..., :f], half)
+    # After the burn-in: blocks of `block` transitions, up to the rest of n_steps; with `mcse` > 0 the
+    # sampler stops at an even number of blocks (>= 4) once the Monte Carlo error of the mean, estimated
+    # from the spread of the chains' means, is below mcse posterior sd and split R-hat below 1.01 in
+    # every free coordinate (a well-determined posterior mixes in a few hundred transitions; the
+    # whitened gradient costs O(P^2) each).
+    n_blk = max(2 * ((n_steps - burn1 - burn2) // (2 * _BLOCK)), 2)
+    block = (n_steps - burn1 - burn2) // n_blk
+    zeros_blk = jnp.zeros((n_blk, n_chains, p_dim))
+    ids = jnp.arange(n_blk)
+
+    def split(k, s):  # the (2, C, P) sums of the first and the second half of the k blocks run
+        first = (ids < k // 2)[:, None, None]
+        second = ((ids >= k // 2) & (ids < k))[:, None, None]
+        return jnp.stack([jnp.sum(jnp.where(first, s, 0.0), axis=0), jnp.sum(jnp.where(second, s, 0.0), axis=0)])
+
+    def converged(k, s1k, s2k):
+        h1, h2 = split(k, s1k), split(k, s2k)
+        n_half = (k // 2) * block
+        rhat = jnp.max(_split_rhat(h1[..., :f], h2[..., :f], n_half))
+        chain_mean = (h1[0] + h1[1]) / (2 * n_half)  # (C, P)
+        var = jnp.sum(h2[0] + h2[1], axis=0) / (2 * n_half * n_chains) - jnp.mean(chain_mean, axis=0) ** 2
+        err2 = jnp.var(chain_mean, axis=0, ddof=1) / n_chains  # squared Monte Carlo error of the mean
+        small = jnp.all(err2[:f] <= mcse**2 * jnp.maximum(var[:f], 1e-300))
+        return (k >= 4) & (k % 2 == 0) & (rhat < 1.01) & small
+
+    def more(state):
+        _, k, s1k, s2k, _ = state
+        return (k < n_blk) & ~((mcse > 0) & converged(k, s1k, s2k))
+
+    def one_block(state):
+        carry, k, s1k, s2k, outer = state
+        carry, s1, s2, o = run(carry, jax.random.fold_in(ka, k), block, center, root, False)
+        accepted = carry[3] + state[0][3]  # run() restarts the acceptance count
+        return ((carry[0], carry[1], carry[2], accepted), k + 1, s1k.at[k].set(s1), s2k.at[k].set(s2), outer + o)
+
+    carry = (carry[0], carry[1], carry[2], jnp.zeros(n_chains))
+    carry, k, s1k, s2k, outer = jax.lax.while_loop(
+        more, one_block, (carry, jnp.asarray(0), zeros_blk, zeros_blk, jnp.zeros((p_dim, p_dim)))
+    )
+    n_draws = k * block
+    accept = jnp.sum(carry[3]) / (n_draws * n_chains)
+    mean, cov = moments(jnp.sum(s1k, axis=0), outer, n_draws * n_chains)
+    rhat = _split_rhat(split(k, s1k)[..., :f], split(k, s2k)[..., :f], (k // 2) * block)
     cov = 0.5 * (cov + cov.T)
     if not sample_node_offsets:  # append the node offsets' prior: mean 0, variance sb^2, uncorrelated
         mean = jnp.concatenate([mean, b_fixed])
@@ -1217,8 +1265,10 @@ def solve(
         starts = _relocation_candidates(state, table, nb, grid_n, p.relocate_candidates)
         if starts.x.shape[0] < s_count:  # same batch size as the multi-start fit: one compilation serves both
             starts = jax.tree.map(lambda a: jnp.concatenate([a, a[:1].repeat(s_count - a.shape[0], axis=0)]), starts)
+        # the multi-start fit's stages and tolerances (one compilation serves both): every stage at the
+        # narrow loss, all but the last stopping at gnc_tol
         moved, moved_costs, moved_codes = _fit_starts(
-            starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc)
+            starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc), p.gnc_tol
         )
         moved_costs = np.where(np.isfinite(np.asarray(moved_costs)), np.asarray(moved_costs), np.inf)
         k = int(np.argmin(moved_costs))
@@ -1239,7 +1289,9 @@ def solve(
             nb = eqx.tree_at(lambda t: t.use_c, nb, jnp.zeros_like(nb.use_c))
             start = eqx.tree_at(lambda t: t.c, state, jnp.zeros_like(state.c))
             starts = jax.tree.map(lambda a: jnp.repeat(a[None], s_count, axis=0), start)
-            refit, _, refit_codes = _fit_starts(starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc))
+            refit, _, refit_codes = _fit_starts(
+                starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc), p.gnc_tol
+            )
             state, code = jax.tree.map(lambda a: a[0], refit), refit_codes[0]
         done(1)
     obs = obs_pairs = obs_med  # obs_pairs: what the posterior of estimate=mean sees, one per pair
@@ -1302,6 +1354,7 @@ def solve(
             p.mcmc_chains,
             p.mcmc_steps,
             chosen == "node",
+            float(p.mcmc_mcse),
         )
         f = free.size
         mean, cov_s = np.asarray(mean), np.asarray(cov_s)
