@@ -259,6 +259,8 @@ class BatchSolution(eqx.Module):
         solver_codes: outcome codes (`jaxcal.solver.outcome`) of the fit the answer rests on (the chosen
             start, relocation, offset refit or all-ranges refinement, whichever came last), then of the
             offset bootstrap's replicate fits (`bias=auto`).
+        mcmc_transitions: transitions per chain the sampler ran, burn-in included (at most `mcmc_steps`;
+            fewer when `mcmc_mcse` was reached first); 0 without sampling.
     """
 
     position: np.ndarray
@@ -276,6 +278,7 @@ class BatchSolution(eqx.Module):
     fallback_reason: str = ""
     model_covariance: np.ndarray | None = None
     solver_codes: np.ndarray = eqx.field(default_factory=lambda: np.zeros(0, dtype=int))
+    mcmc_transitions: int = 0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -514,12 +517,14 @@ def _rows(state: _State, args):
     )
 
 
-def _solver(name: str, tol: float):
+def _solver(name: str, tol: float, tail: int = 0):
+    """The least-squares solver `name`; `tail`: the per-node offsets (last in the state) enter no residual
+    (`bias` other than `node`), which `lm` exploits (`SparseLevenbergMarquardt.diag_tail`)."""
     if name == "gn":
         return optx.GaussNewton(rtol=tol, atol=tol)
     if name == "lm_dense":
         return optx.LevenbergMarquardt(rtol=tol, atol=tol)
-    return SparseLevenbergMarquardt(rtol=tol, atol=tol, rows=_rows)
+    return SparseLevenbergMarquardt(rtol=tol, atol=tol, rows=_rows, diag_tail=tail)
 
 
 @eqx.filter_jit
@@ -554,6 +559,7 @@ def _fit_starts(
     max_steps: int,
     factors: Array | None = None,
     coarse_tol: float | None = None,
+    tail: int = 0,
 ):
     """Refine every start (a batched `_State`; vmapped least squares); returns final states, costs and
     the outcome codes of their last fits (`jaxcal.solver.outcome`).
@@ -562,7 +568,8 @@ def _fit_starts(
     with sigma_r * factors[0], ..., sigma_r * factors[-1] in turn, each warm-started from the last. A wide
     scale first pulls every start towards the bulk of the data before a narrow, redescending loss
     decides which ranges are outliers, so gross errors in the start do not trap the fit. With `coarse_tol`
-    (`solver="lm"` only), every stage but the last stops at that tolerance (or `tol`, if looser).
+    (`solver="lm"` only), every stage but the last stops at that tolerance (or `tol`, if looser). `tail`:
+    see `_solver` (static; the number of nodes when the model has no per-node offsets, else 0).
     """
     args = (obs, nb)
     factors = jnp.ones(1) if factors is None else factors
@@ -575,9 +582,9 @@ def _fit_starts(
             nbk = eqx.tree_at(lambda t: t.sigma_r, nb, nb.sigma_r * factor)
             if coarse:
                 tol_k = jnp.where(is_last, tol, max(tol, coarse_tol))
-                opt = SparseLevenbergMarquardt(rtol=tol_k, atol=tol_k, rows=_rows)
+                opt = SparseLevenbergMarquardt(rtol=tol_k, atol=tol_k, rows=_rows, diag_tail=tail)
             else:
-                opt = _solver(solver, tol)
+                opt = _solver(solver, tol, tail)
             sol = optx.least_squares(_residuals, opt, y, (obs, nbk), max_steps=max_steps, throw=False)
             return sol.value, S.outcome(sol)
 
@@ -600,7 +607,15 @@ def _procrustes_rmse(x: Array, ref: Array) -> Array:
 
 @eqx.filter_jit
 def offset_bootstrap(
-    state: _State, obs: Observations, nb: _Numbers, key: Array, n_boot: int, solver: str, tol: float, max_steps: int
+    state: _State,
+    obs: Observations,
+    nb: _Numbers,
+    key: Array,
+    n_boot: int,
+    solver: str,
+    tol: float,
+    max_steps: int,
+    tail: int = 0,
 ) -> Array:
     """Predicted position error of fitting the common range offset c or leaving it out (`bias=auto`).
 
@@ -641,7 +656,7 @@ def offset_bootstrap(
 
         def fit(y0, nbk):
             sol = optx.least_squares(
-                _residuals, _solver(solver, tol), y0, (obs_b, nbk), max_steps=max_steps, throw=False
+                _residuals, _solver(solver, tol, tail), y0, (obs_b, nbk), max_steps=max_steps, throw=False
             )
             return _procrustes_rmse(sol.value.x, state.x) ** 2, S.outcome(sol)
 
@@ -663,6 +678,7 @@ def _irls_all(
     tol: float,
     max_steps: int,
     n_iter: int,
+    tail: int = 0,
 ) -> _State:
     """Minimise the robust cost over every single range by iteratively reweighted least squares.
 
@@ -680,7 +696,12 @@ def _irls_all(
         zbar = jax.ops.segment_sum(w * obs.z, pair_of_obs, n_pairs) / jnp.maximum(wsum, 1e-300)
         pairs = Observations(pair_i, pair_j, zbar, wsum)
         sol = optx.least_squares(
-            _residuals, _solver(solver, tol), state, (pairs, nb.with_loss("l2")), max_steps=max_steps, throw=False
+            _residuals,
+            _solver(solver, tol, tail),
+            state,
+            (pairs, nb.with_loss("l2")),
+            max_steps=max_steps,
+            throw=False,
         )
         return sol.value, S.outcome(sol)
 
@@ -820,6 +841,7 @@ def _range_weights(state: _State, obs: Observations, nb: _Numbers) -> Array:
 
 
 _LEAPFROG = 16  # leapfrog steps per HMC transition of `posterior_mean`
+_BURN = 250  # most transitions of each of the two burn-in phases of `posterior_mean`
 _BLOCK = 125  # transitions per block of `posterior_mean` after the burn-in (its stopping rule's unit)
 
 
@@ -882,7 +904,7 @@ def posterior_mean(
 
     Returns:
         (mean (F + 1 + n,), covariance (F + 1 + n, F + 1 + n), acceptance rate, max split R-hat over the
-        free coordinates).
+        free coordinates, transitions run per chain (burn-in included)).
     """
     f, n_b = free.shape[0], b.shape[0]
     idx = jnp.nonzero(mask.ravel(), size=f)[0]
@@ -971,8 +993,9 @@ def posterior_mean(
     root = sqrt_cov(jnp.linalg.inv(info))
     u0 = 0.1 * jax.random.normal(k0, (n_chains, p_dim))
     carry = (u0, jax.vmap(lambda v: logp(theta0 + root @ v))(u0), jnp.asarray(0.5 / p_dim**0.25), jnp.zeros(n_chains))
-    burn1 = n_steps // 8
-    burn2 = n_steps // 4 - burn1
+    # burn-in: a quarter of n_steps, at most 2 _BURN (the stopping rule after it decides how long to sample)
+    burn1 = min(n_steps // 8, _BURN)
+    burn2 = min(n_steps // 4 - n_steps // 8, _BURN)
     carry, s1, _, outer = run(carry, kb1, burn1, theta0, root, True)
     center, cov_burn = moments(s1, outer, burn1 * n_chains)
     new_root = sqrt_cov(cov_burn + jnp.diag(1e-12 + 1e-9 * jnp.diag(cov_burn)))
@@ -1026,7 +1049,7 @@ def posterior_mean(
     if not sample_node_offsets:  # append the node offsets' prior: mean 0, variance sb^2, uncorrelated
         mean = jnp.concatenate([mean, b_fixed])
         cov = jax.scipy.linalg.block_diag(cov, jnp.eye(n_b) * sb**2)
-    return mean, cov, accept, jnp.max(rhat)
+    return mean, cov, accept, jnp.max(rhat), burn1 + burn2 + n_draws
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1253,7 +1276,8 @@ def solve(
     s_count = x0s.shape[0]
     y0s = _State(x0s, jnp.zeros(s_count), jnp.zeros((s_count, m)))
     gnc = jnp.asarray(2.0 ** np.arange(p.gnc_stages - 1, -1, -1), dtype=float)
-    states, costs, fit_codes = _fit_starts(y0s, obs_med, nb, p.solver, p.tol, p.max_steps, gnc, p.gnc_tol)
+    tail = 0 if p.bias == "node" else m  # per-node offsets that enter no range: solved apart (`_solver`)
+    states, costs, fit_codes = _fit_starts(y0s, obs_med, nb, p.solver, p.tol, p.max_steps, gnc, p.gnc_tol, tail)
     costs = np.where(np.isfinite(np.asarray(costs)), np.asarray(costs), np.inf)
     best = int(np.argmin(costs))
     state, code = jax.tree.map(lambda a: a[best], states), fit_codes[best]  # code: of the fit `state` is
@@ -1268,7 +1292,7 @@ def solve(
         # the multi-start fit's stages and tolerances (one compilation serves both): every stage at the
         # narrow loss, all but the last stopping at gnc_tol
         moved, moved_costs, moved_codes = _fit_starts(
-            starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc), p.gnc_tol
+            starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc), p.gnc_tol, tail
         )
         moved_costs = np.where(np.isfinite(np.asarray(moved_costs)), np.asarray(moved_costs), np.inf)
         k = int(np.argmin(moved_costs))
@@ -1281,7 +1305,7 @@ def solve(
         boot, boot_codes = (
             np.asarray(a)
             for a in offset_bootstrap(
-                state, obs_med, nb, jax.random.fold_in(key, 7), p.n_boot, p.solver, p.tol, p.max_steps
+                state, obs_med, nb, jax.random.fold_in(key, 7), p.n_boot, p.solver, p.tol, p.max_steps, tail
             )
         )
         if boot[1] < boot[0]:  # leaving the offset out is predicted to place the nodes better
@@ -1290,7 +1314,7 @@ def solve(
             start = eqx.tree_at(lambda t: t.c, state, jnp.zeros_like(state.c))
             starts = jax.tree.map(lambda a: jnp.repeat(a[None], s_count, axis=0), start)
             refit, _, refit_codes = _fit_starts(
-                starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc), p.gnc_tol
+                starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc), p.gnc_tol, tail
             )
             state, code = jax.tree.map(lambda a: a[0], refit), refit_codes[0]
         done(1)
@@ -1304,7 +1328,7 @@ def solve(
         size = _bucket(uniq.size)
         pair_i, pair_j = jnp.asarray(_pad(uniq // m, size)), jnp.asarray(_pad(uniq % m, size))
         state, code = _irls_all(
-            state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb, p.solver, p.tol, p.max_steps, p.irls_iters
+            state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb, p.solver, p.tol, p.max_steps, p.irls_iters, tail
         )
         if p.estimate == "mean":  # the posterior's pair observations: where the all-ranges fit puts them
             obs_pairs = _pair_locations(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb)
@@ -1336,12 +1360,13 @@ def solve(
     done(1)
     cov_model = cov_free
     offset, node_b, accept, rhat = float(state.c), np.asarray(state.b), float("nan"), float("nan")
+    transitions = 0
     used, reason = "map", ""
     if p.estimate == "mean":
         n_off = int(chosen != "none")  # per-node offsets have a proper prior of their own
         reason = posterior_defect(mi, mj, m, p.dim, p.student_nu, n_off, tuple(ids[k] for k in sub), p.seed)
     if p.estimate == "mean" and not reason:
-        mean, cov_s, acc, rh = posterior_mean(
+        mean, cov_s, acc, rh, n_run = posterior_mean(
             jnp.asarray(free),
             jnp.asarray(x_frame_sub),
             jnp.asarray(mask),
@@ -1358,7 +1383,7 @@ def solve(
         )
         f = free.size
         mean, cov_s = np.asarray(mean), np.asarray(cov_s)
-        accept, rhat = float(acc), float(rh)
+        accept, rhat, transitions = float(acc), float(rh), int(n_run)
         done(1)
         if rhat <= RHAT_MAX and np.isfinite(mean).all() and np.isfinite(cov_s).all():
             x_frame_sub[mask] = mean[:f]
@@ -1425,6 +1450,7 @@ def solve(
         fallback_reason=reason,
         model_covariance=per_node(cov_model),
         solver_codes=np.append(np.asarray(code), boot_codes).astype(int),
+        mcmc_transitions=transitions,
     )
 
 
@@ -1499,7 +1525,11 @@ def calibrate(
         method="batch",
         dataset=dataset.name,
         frame="anchors:" + ",".join(str(a) for a in anchors),
-        params={**as_dict(p), **outcome.params()},
+        params={
+            **as_dict(p),
+            **outcome.params(),
+            **({"mcmc_transitions": sol.mcmc_transitions} if sol.mcmc_transitions else {}),
+        },
         covariance=sol.covariance,
         software=f"jaxcal {__version__}",
     )
