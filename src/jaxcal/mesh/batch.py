@@ -130,7 +130,7 @@ class BatchParams(eqx.Module):
             the geometry is weak) or `map` (the robust fit itself and its Laplace covariance).
         student_nu: degrees of freedom of the Student-t pair likelihood of `estimate=mean` (1 = Cauchy).
         mcmc_chains, mcmc_steps: Hamiltonian Monte Carlo chains and transitions per chain of
-            `estimate=mean` (the first quarter is burn-in; `mcmc_steps` is the most run, see `mcmc_mcse`).
+            `estimate=mean` (a quarter of it, at most 500, is burn-in; `mcmc_steps` is the most run, see `mcmc_mcse`).
         mcmc_mcse: the sampler stops before `mcmc_steps` once the Monte Carlo error of the posterior mean is
             below this share of the posterior standard deviation in every coordinate and split R-hat is
             below 1.01 (checked every 250 transitions after the burn-in, from the spread of the chains'
@@ -885,7 +885,7 @@ def posterior_mean(
     the fit's pair errors (per-pair systematic errors dominate on real meshes: repeated ranges of a pair
     are not independent, so the pair, not the single range, is the unit); flat prior on positions, the
     offsets' priors of `_prior_scales`. Sampled by Hamiltonian Monte Carlo (`_LEAPFROG` leapfrog steps per
-    transition, `n_chains` vmapped chains started at the fit); the first quarter of `n_steps` is burn-in:
+    transition, `n_chains` vmapped chains started at the fit); a quarter of `n_steps` (at most 2 `_BURN`) is burn-in:
     its first half runs whitened by the Laplace covariance and estimates the posterior covariance, which
     whitens the rest; the step size adapts during the burn-in to a mean acceptance probability of 0.8.
 
