@@ -31,7 +31,11 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+# LAPACK on one thread for the SciPy peer in this process too, as `jaxcal` sets it for itself (jaxcal.cli):
+# OpenBLAS's worker threads spin on a busy machine and would charge the peer for it
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -11,9 +11,11 @@ import sys
 import tempfile
 from pathlib import Path
 
-import jax
-import numpy as np
-import pytest
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the CLI (jaxcal.cli): before NumPy is imported
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
 
 from jaxcal.executables import release_if_crowded
 

@@ -75,6 +75,28 @@ def test_sparse_lm_reaches_the_optimum_of_optimistix_dense_lm(rng, loss):
         np.testing.assert_allclose(sp.c[k], de.c[k], atol=1e-6)
 
 
+@pytest.mark.parametrize("bias", ["network", "none"])
+def test_offsets_solved_apart_reach_the_full_solve(rng, bias):
+    """Without per-node offsets in the model their block of J^T J is diagonal and uncoupled: solving it
+    apart (`diag_tail`, the default path of `solve`) takes the same steps as the full Cholesky."""
+    x, obs = network(rng, n=12)
+    nb = B._Numbers.of(B.BatchParams(bias=bias))
+    y0 = B._State(
+        jnp.asarray(np.stack([x + rng.normal(0, 0.5, x.shape) for _ in range(3)])),
+        jnp.zeros(3),
+        jnp.asarray(rng.normal(0, 1e-3, (3, x.shape[0]))),
+    )
+    gnc = jnp.asarray([4.0, 2.0, 1.0])
+    full, c_full, _ = B._fit_starts(y0, obs, nb, "lm", 1e-10, 300, gnc, 1e-4)
+    apart, c_apart, code = B._fit_starts(y0, obs, nb, "lm", 1e-10, 300, gnc, 1e-4, x.shape[0])
+    from jaxcal import solver
+
+    assert (np.asarray(code) == solver.CONVERGED).all()
+    np.testing.assert_allclose(c_apart, c_full, rtol=1e-9)
+    np.testing.assert_allclose(apart.x, full.x, atol=1e-7)
+    np.testing.assert_allclose(apart.b, full.b, atol=1e-12)
+
+
 def test_sparse_lm_result_is_successful_and_exact_on_noise_free_data(rng):
     x, obs = network(rng, noise=0.0)
     obs = eqx.tree_at(lambda o: o.z, obs, obs.z.at[0].add(-3.0))  # no outlier: an exact fit exists

@@ -130,7 +130,11 @@ class BatchParams(eqx.Module):
             the geometry is weak) or `map` (the robust fit itself and its Laplace covariance).
         student_nu: degrees of freedom of the Student-t pair likelihood of `estimate=mean` (1 = Cauchy).
         mcmc_chains, mcmc_steps: Hamiltonian Monte Carlo chains and transitions per chain of
-            `estimate=mean` (the first quarter is burn-in).
+            `estimate=mean` (a quarter of it, at most 500, is burn-in; `mcmc_steps` is the most run, see `mcmc_mcse`).
+        mcmc_mcse: the sampler stops before `mcmc_steps` once the Monte Carlo error of the posterior mean is
+            below this share of the posterior standard deviation in every coordinate and split R-hat is
+            below 1.01 (checked every 250 transitions after the burn-in, from the spread of the chains'
+            means); 0 runs every step.
     """
 
     dim: int = 2
@@ -163,6 +167,7 @@ class BatchParams(eqx.Module):
     student_nu: float = 1.0
     mcmc_chains: int = 16
     mcmc_steps: int = 4000
+    mcmc_mcse: float = 0.05
 
     def __check_init__(self):
         for name, allowed in (
@@ -183,6 +188,8 @@ class BatchParams(eqx.Module):
         for name in ("sigma_r", "node_bias_sigma_m", "nlos_mean_m", "outlier_span_m", "tol", "gnc_tol", "student_nu"):
             if not getattr(self, name) > 0:
                 raise JaxcalError(f"parameter {name}: must be > 0, got {getattr(self, name)}")
+        if not self.mcmc_mcse >= 0:
+            raise JaxcalError(f"parameter mcmc_mcse: must be >= 0, got {self.mcmc_mcse}")
         for name in ("nlos_weight", "outlier_weight"):
             if not 0 <= getattr(self, name) < 1:
                 raise JaxcalError(f"parameter {name}: must be in [0, 1), got {getattr(self, name)}")
@@ -252,6 +259,8 @@ class BatchSolution(eqx.Module):
         solver_codes: outcome codes (`jaxcal.solver.outcome`) of the fit the answer rests on (the chosen
             start, relocation, offset refit or all-ranges refinement, whichever came last), then of the
             offset bootstrap's replicate fits (`bias=auto`).
+        mcmc_transitions: transitions per chain the sampler ran, burn-in included (at most `mcmc_steps`;
+            fewer when `mcmc_mcse` was reached first); 0 without sampling.
     """
 
     position: np.ndarray
@@ -269,6 +278,7 @@ class BatchSolution(eqx.Module):
     fallback_reason: str = ""
     model_covariance: np.ndarray | None = None
     solver_codes: np.ndarray = eqx.field(default_factory=lambda: np.zeros(0, dtype=int))
+    mcmc_transitions: int = 0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -507,12 +517,14 @@ def _rows(state: _State, args):
     )
 
 
-def _solver(name: str, tol: float):
+def _solver(name: str, tol: float, tail: int = 0):
+    """The least-squares solver `name`; `tail`: the per-node offsets (last in the state) enter no residual
+    (`bias` other than `node`), which `lm` exploits (`SparseLevenbergMarquardt.diag_tail`)."""
     if name == "gn":
         return optx.GaussNewton(rtol=tol, atol=tol)
     if name == "lm_dense":
         return optx.LevenbergMarquardt(rtol=tol, atol=tol)
-    return SparseLevenbergMarquardt(rtol=tol, atol=tol, rows=_rows)
+    return SparseLevenbergMarquardt(rtol=tol, atol=tol, rows=_rows, diag_tail=tail)
 
 
 @eqx.filter_jit
@@ -547,6 +559,7 @@ def _fit_starts(
     max_steps: int,
     factors: Array | None = None,
     coarse_tol: float | None = None,
+    tail: int = 0,
 ):
     """Refine every start (a batched `_State`; vmapped least squares); returns final states, costs and
     the outcome codes of their last fits (`jaxcal.solver.outcome`).
@@ -555,7 +568,8 @@ def _fit_starts(
     with sigma_r * factors[0], ..., sigma_r * factors[-1] in turn, each warm-started from the last. A wide
     scale first pulls every start towards the bulk of the data before a narrow, redescending loss
     decides which ranges are outliers, so gross errors in the start do not trap the fit. With `coarse_tol`
-    (`solver="lm"` only), every stage but the last stops at that tolerance (or `tol`, if looser).
+    (`solver="lm"` only), every stage but the last stops at that tolerance (or `tol`, if looser). `tail`:
+    see `_solver` (static; the number of nodes when the model has no per-node offsets, else 0).
     """
     args = (obs, nb)
     factors = jnp.ones(1) if factors is None else factors
@@ -568,9 +582,9 @@ def _fit_starts(
             nbk = eqx.tree_at(lambda t: t.sigma_r, nb, nb.sigma_r * factor)
             if coarse:
                 tol_k = jnp.where(is_last, tol, max(tol, coarse_tol))
-                opt = SparseLevenbergMarquardt(rtol=tol_k, atol=tol_k, rows=_rows)
+                opt = SparseLevenbergMarquardt(rtol=tol_k, atol=tol_k, rows=_rows, diag_tail=tail)
             else:
-                opt = _solver(solver, tol)
+                opt = _solver(solver, tol, tail)
             sol = optx.least_squares(_residuals, opt, y, (obs, nbk), max_steps=max_steps, throw=False)
             return sol.value, S.outcome(sol)
 
@@ -593,7 +607,15 @@ def _procrustes_rmse(x: Array, ref: Array) -> Array:
 
 @eqx.filter_jit
 def offset_bootstrap(
-    state: _State, obs: Observations, nb: _Numbers, key: Array, n_boot: int, solver: str, tol: float, max_steps: int
+    state: _State,
+    obs: Observations,
+    nb: _Numbers,
+    key: Array,
+    n_boot: int,
+    solver: str,
+    tol: float,
+    max_steps: int,
+    tail: int = 0,
 ) -> Array:
     """Predicted position error of fitting the common range offset c or leaving it out (`bias=auto`).
 
@@ -634,7 +656,7 @@ def offset_bootstrap(
 
         def fit(y0, nbk):
             sol = optx.least_squares(
-                _residuals, _solver(solver, tol), y0, (obs_b, nbk), max_steps=max_steps, throw=False
+                _residuals, _solver(solver, tol, tail), y0, (obs_b, nbk), max_steps=max_steps, throw=False
             )
             return _procrustes_rmse(sol.value.x, state.x) ** 2, S.outcome(sol)
 
@@ -656,6 +678,7 @@ def _irls_all(
     tol: float,
     max_steps: int,
     n_iter: int,
+    tail: int = 0,
 ) -> _State:
     """Minimise the robust cost over every single range by iteratively reweighted least squares.
 
@@ -673,7 +696,12 @@ def _irls_all(
         zbar = jax.ops.segment_sum(w * obs.z, pair_of_obs, n_pairs) / jnp.maximum(wsum, 1e-300)
         pairs = Observations(pair_i, pair_j, zbar, wsum)
         sol = optx.least_squares(
-            _residuals, _solver(solver, tol), state, (pairs, nb.with_loss("l2")), max_steps=max_steps, throw=False
+            _residuals,
+            _solver(solver, tol, tail),
+            state,
+            (pairs, nb.with_loss("l2")),
+            max_steps=max_steps,
+            throw=False,
         )
         return sol.value, S.outcome(sol)
 
@@ -813,6 +841,8 @@ def _range_weights(state: _State, obs: Observations, nb: _Numbers) -> Array:
 
 
 _LEAPFROG = 16  # leapfrog steps per HMC transition of `posterior_mean`
+_BURN = 250  # most transitions of each of the two burn-in phases of `posterior_mean`
+_BLOCK = 125  # transitions per block of `posterior_mean` after the burn-in (its stopping rule's unit)
 
 
 def _split_rhat(s1: Array, s2: Array, n: int) -> Array:
@@ -822,7 +852,7 @@ def _split_rhat(s1: Array, s2: Array, n: int) -> Array:
         s1, s2: (2, C, P) sums and sums of squares of the two halves of C chains, n draws each.
     """
     mean = (s1 / n).reshape(-1, s1.shape[-1])
-    var = ((s2 - s1 * s1 / n) / max(n - 1, 1)).reshape(-1, s1.shape[-1])
+    var = ((s2 - s1 * s1 / n) / jnp.maximum(n - 1, 1)).reshape(-1, s1.shape[-1])
     w = jnp.mean(var, axis=0)
     b = n * jnp.var(mean, axis=0, ddof=1)
     var_plus = (n - 1) / n * w + b / n
@@ -843,6 +873,7 @@ def posterior_mean(
     n_chains: int,
     n_steps: int,
     sample_node_offsets: bool = True,
+    mcse: float = 0.0,
 ):
     """Posterior mean and covariance of the free frame coordinates (and offsets) (`estimate=mean`).
 
@@ -854,7 +885,7 @@ def posterior_mean(
     the fit's pair errors (per-pair systematic errors dominate on real meshes: repeated ranges of a pair
     are not independent, so the pair, not the single range, is the unit); flat prior on positions, the
     offsets' priors of `_prior_scales`. Sampled by Hamiltonian Monte Carlo (`_LEAPFROG` leapfrog steps per
-    transition, `n_chains` vmapped chains started at the fit); the first quarter of `n_steps` is burn-in:
+    transition, `n_chains` vmapped chains started at the fit); a quarter of `n_steps` (at most 2 `_BURN`) is burn-in:
     its first half runs whitened by the Laplace covariance and estimates the posterior covariance, which
     whitens the rest; the step size adapts during the burn-in to a mean acceptance probability of 0.8.
 
@@ -863,6 +894,9 @@ def posterior_mean(
         mask: (m, D) bool, which entries of `template` are free; c, b: the fit's offsets;
         obs: pair observations (padding has weight 0); nb: numbers of the fit; key: PRNG key;
         nu: Student-t degrees of freedom; n_chains, n_steps: static sampler sizes.
+        mcse: static; > 0: stop after the burn-in once the Monte Carlo error of the mean is below mcse
+            posterior sd (and split R-hat below 1.01) in every free coordinate, checked every two blocks of
+            `_BLOCK` transitions; 0: run all n_steps.
         sample_node_offsets: static; False when the model has no per-node offsets (`nb.use_b` off): they
             then enter no range, their posterior is their prior (mean 0, sd `node_bias_sigma_m`,
             independent of the rest), and they are returned as such instead of being sampled (P = F + 1
@@ -870,7 +904,7 @@ def posterior_mean(
 
     Returns:
         (mean (F + 1 + n,), covariance (F + 1 + n, F + 1 + n), acceptance rate, max split R-hat over the
-        free coordinates).
+        free coordinates, transitions run per chain (burn-in included)).
     """
     f, n_b = free.shape[0], b.shape[0]
     idx = jnp.nonzero(mask.ravel(), size=f)[0]
@@ -955,30 +989,67 @@ def posterior_mean(
         lp = jax.vmap(lambda v: logp(new_center + new_root @ v))(u)
         return (u, lp, carry[2], carry[3])
 
-    k0, kb1, kb2, ka, kc = jax.random.split(key, 5)
+    k0, kb1, kb2, ka = jax.random.split(key, 4)
     root = sqrt_cov(jnp.linalg.inv(info))
     u0 = 0.1 * jax.random.normal(k0, (n_chains, p_dim))
     carry = (u0, jax.vmap(lambda v: logp(theta0 + root @ v))(u0), jnp.asarray(0.5 / p_dim**0.25), jnp.zeros(n_chains))
-    burn1 = n_steps // 8
-    burn2 = n_steps // 4 - burn1
+    # burn-in: a quarter of n_steps, at most 2 _BURN (the stopping rule after it decides how long to sample)
+    burn1 = min(n_steps // 8, _BURN)
+    burn2 = min(n_steps // 4 - n_steps // 8, _BURN)
     carry, s1, _, outer = run(carry, kb1, burn1, theta0, root, True)
     center, cov_burn = moments(s1, outer, burn1 * n_chains)
     new_root = sqrt_cov(cov_burn + jnp.diag(1e-12 + 1e-9 * jnp.diag(cov_burn)))
     carry = rewhiten(carry, theta0, root, center, new_root)
     root = new_root
     carry, _, _, _ = run(carry, kb2, burn2, center, root, True)
-    half = (n_steps - burn1 - burn2) // 2
-    carry, s1a, s2a, oa = run(carry, ka, half, center, root, False)
-    accept = jnp.sum(carry[3])
-    carry, s1b, s2b, ob = run(carry, kc, half, center, root, False)
-    accept = (accept + jnp.sum(carry[3])) / (2 * half * n_chains)
-    mean, cov = moments(s1a + s1b, oa + ob, 2 * half * n_chains)
-    rhat = _split_rhat(jnp.stack([s1a, s1b])[..., :f], jnp.stack([s2a, s2b])[..., :f], half)
+    # After the burn-in: blocks of `block` transitions, up to the rest of n_steps; with `mcse` > 0 the
+    # sampler stops at an even number of blocks (>= 4) once the Monte Carlo error of the mean, estimated
+    # from the spread of the chains' means, is below mcse posterior sd and split R-hat below 1.01 in
+    # every free coordinate (a well-determined posterior mixes in a few hundred transitions; the
+    # whitened gradient costs O(P^2) each).
+    n_blk = max(2 * ((n_steps - burn1 - burn2) // (2 * _BLOCK)), 2)
+    block = (n_steps - burn1 - burn2) // n_blk
+    zeros_blk = jnp.zeros((n_blk, n_chains, p_dim))
+    ids = jnp.arange(n_blk)
+
+    def split(k, s):  # the (2, C, P) sums of the first and the second half of the k blocks run
+        first = (ids < k // 2)[:, None, None]
+        second = ((ids >= k // 2) & (ids < k))[:, None, None]
+        return jnp.stack([jnp.sum(jnp.where(first, s, 0.0), axis=0), jnp.sum(jnp.where(second, s, 0.0), axis=0)])
+
+    def converged(k, s1k, s2k):
+        h1, h2 = split(k, s1k), split(k, s2k)
+        n_half = (k // 2) * block
+        rhat = jnp.max(_split_rhat(h1[..., :f], h2[..., :f], n_half))
+        chain_mean = (h1[0] + h1[1]) / (2 * n_half)  # (C, P)
+        var = jnp.sum(h2[0] + h2[1], axis=0) / (2 * n_half * n_chains) - jnp.mean(chain_mean, axis=0) ** 2
+        err2 = jnp.var(chain_mean, axis=0, ddof=1) / n_chains  # squared Monte Carlo error of the mean
+        small = jnp.all(err2[:f] <= mcse**2 * jnp.maximum(var[:f], 1e-300))
+        return (k >= 4) & (k % 2 == 0) & (rhat < 1.01) & small
+
+    def more(state):
+        _, k, s1k, s2k, _ = state
+        return (k < n_blk) & ~((mcse > 0) & converged(k, s1k, s2k))
+
+    def one_block(state):
+        carry, k, s1k, s2k, outer = state
+        carry, s1, s2, o = run(carry, jax.random.fold_in(ka, k), block, center, root, False)
+        accepted = carry[3] + state[0][3]  # run() restarts the acceptance count
+        return ((carry[0], carry[1], carry[2], accepted), k + 1, s1k.at[k].set(s1), s2k.at[k].set(s2), outer + o)
+
+    carry = (carry[0], carry[1], carry[2], jnp.zeros(n_chains))
+    carry, k, s1k, s2k, outer = jax.lax.while_loop(
+        more, one_block, (carry, jnp.asarray(0), zeros_blk, zeros_blk, jnp.zeros((p_dim, p_dim)))
+    )
+    n_draws = k * block
+    accept = jnp.sum(carry[3]) / (n_draws * n_chains)
+    mean, cov = moments(jnp.sum(s1k, axis=0), outer, n_draws * n_chains)
+    rhat = _split_rhat(split(k, s1k)[..., :f], split(k, s2k)[..., :f], (k // 2) * block)
     cov = 0.5 * (cov + cov.T)
     if not sample_node_offsets:  # append the node offsets' prior: mean 0, variance sb^2, uncorrelated
         mean = jnp.concatenate([mean, b_fixed])
         cov = jax.scipy.linalg.block_diag(cov, jnp.eye(n_b) * sb**2)
-    return mean, cov, accept, jnp.max(rhat)
+    return mean, cov, accept, jnp.max(rhat), burn1 + burn2 + n_draws
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1205,7 +1276,8 @@ def solve(
     s_count = x0s.shape[0]
     y0s = _State(x0s, jnp.zeros(s_count), jnp.zeros((s_count, m)))
     gnc = jnp.asarray(2.0 ** np.arange(p.gnc_stages - 1, -1, -1), dtype=float)
-    states, costs, fit_codes = _fit_starts(y0s, obs_med, nb, p.solver, p.tol, p.max_steps, gnc, p.gnc_tol)
+    tail = 0 if p.bias == "node" else m  # per-node offsets that enter no range: solved apart (`_solver`)
+    states, costs, fit_codes = _fit_starts(y0s, obs_med, nb, p.solver, p.tol, p.max_steps, gnc, p.gnc_tol, tail)
     costs = np.where(np.isfinite(np.asarray(costs)), np.asarray(costs), np.inf)
     best = int(np.argmin(costs))
     state, code = jax.tree.map(lambda a: a[best], states), fit_codes[best]  # code: of the fit `state` is
@@ -1217,8 +1289,10 @@ def solve(
         starts = _relocation_candidates(state, table, nb, grid_n, p.relocate_candidates)
         if starts.x.shape[0] < s_count:  # same batch size as the multi-start fit: one compilation serves both
             starts = jax.tree.map(lambda a: jnp.concatenate([a, a[:1].repeat(s_count - a.shape[0], axis=0)]), starts)
+        # the multi-start fit's stages and tolerances (one compilation serves both): every stage at the
+        # narrow loss, all but the last stopping at gnc_tol
         moved, moved_costs, moved_codes = _fit_starts(
-            starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc)
+            starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc), p.gnc_tol, tail
         )
         moved_costs = np.where(np.isfinite(np.asarray(moved_costs)), np.asarray(moved_costs), np.inf)
         k = int(np.argmin(moved_costs))
@@ -1231,7 +1305,7 @@ def solve(
         boot, boot_codes = (
             np.asarray(a)
             for a in offset_bootstrap(
-                state, obs_med, nb, jax.random.fold_in(key, 7), p.n_boot, p.solver, p.tol, p.max_steps
+                state, obs_med, nb, jax.random.fold_in(key, 7), p.n_boot, p.solver, p.tol, p.max_steps, tail
             )
         )
         if boot[1] < boot[0]:  # leaving the offset out is predicted to place the nodes better
@@ -1239,7 +1313,9 @@ def solve(
             nb = eqx.tree_at(lambda t: t.use_c, nb, jnp.zeros_like(nb.use_c))
             start = eqx.tree_at(lambda t: t.c, state, jnp.zeros_like(state.c))
             starts = jax.tree.map(lambda a: jnp.repeat(a[None], s_count, axis=0), start)
-            refit, _, refit_codes = _fit_starts(starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc))
+            refit, _, refit_codes = _fit_starts(
+                starts, obs_med, nb, p.solver, p.tol, p.max_steps, jnp.ones_like(gnc), p.gnc_tol, tail
+            )
             state, code = jax.tree.map(lambda a: a[0], refit), refit_codes[0]
         done(1)
     obs = obs_pairs = obs_med  # obs_pairs: what the posterior of estimate=mean sees, one per pair
@@ -1252,7 +1328,7 @@ def solve(
         size = _bucket(uniq.size)
         pair_i, pair_j = jnp.asarray(_pad(uniq // m, size)), jnp.asarray(_pad(uniq % m, size))
         state, code = _irls_all(
-            state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb, p.solver, p.tol, p.max_steps, p.irls_iters
+            state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb, p.solver, p.tol, p.max_steps, p.irls_iters, tail
         )
         if p.estimate == "mean":  # the posterior's pair observations: where the all-ranges fit puts them
             obs_pairs = _pair_locations(state, obs, pair_i, pair_j, jnp.asarray(pair_of_obs), nb)
@@ -1284,12 +1360,13 @@ def solve(
     done(1)
     cov_model = cov_free
     offset, node_b, accept, rhat = float(state.c), np.asarray(state.b), float("nan"), float("nan")
+    transitions = 0
     used, reason = "map", ""
     if p.estimate == "mean":
         n_off = int(chosen != "none")  # per-node offsets have a proper prior of their own
         reason = posterior_defect(mi, mj, m, p.dim, p.student_nu, n_off, tuple(ids[k] for k in sub), p.seed)
     if p.estimate == "mean" and not reason:
-        mean, cov_s, acc, rh = posterior_mean(
+        mean, cov_s, acc, rh, n_run = posterior_mean(
             jnp.asarray(free),
             jnp.asarray(x_frame_sub),
             jnp.asarray(mask),
@@ -1302,10 +1379,11 @@ def solve(
             p.mcmc_chains,
             p.mcmc_steps,
             chosen == "node",
+            float(p.mcmc_mcse),
         )
         f = free.size
         mean, cov_s = np.asarray(mean), np.asarray(cov_s)
-        accept, rhat = float(acc), float(rh)
+        accept, rhat, transitions = float(acc), float(rh), int(n_run)
         done(1)
         if rhat <= RHAT_MAX and np.isfinite(mean).all() and np.isfinite(cov_s).all():
             x_frame_sub[mask] = mean[:f]
@@ -1372,6 +1450,7 @@ def solve(
         fallback_reason=reason,
         model_covariance=per_node(cov_model),
         solver_codes=np.append(np.asarray(code), boot_codes).astype(int),
+        mcmc_transitions=transitions,
     )
 
 
@@ -1446,7 +1525,11 @@ def calibrate(
         method="batch",
         dataset=dataset.name,
         frame="anchors:" + ",".join(str(a) for a in anchors),
-        params={**as_dict(p), **outcome.params()},
+        params={
+            **as_dict(p),
+            **outcome.params(),
+            **({"mcmc_transitions": sol.mcmc_transitions} if sol.mcmc_transitions else {}),
+        },
         covariance=sol.covariance,
         software=f"jaxcal {__version__}",
     )

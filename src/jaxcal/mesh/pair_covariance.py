@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.optimize import nnls
+from scipy.sparse import csr_matrix
 
 
 def pair_spread(range_m: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
@@ -121,6 +122,101 @@ def variance_components(
     }
 
 
+def _incidence(i: np.ndarray, j: np.ndarray, m: int, n_nodes: int) -> csr_matrix:
+    """(M, n_nodes) sparse pair-node incidence Z (Z[k, i_k] = Z[k, j_k] = 1)."""
+    rows = np.r_[np.arange(m), np.arange(m)]
+    return csr_matrix((np.ones(2 * m), (rows, np.r_[i, j])), shape=(m, n_nodes))
+
+
+def _components(jac, e, w, spread, i, j, n_nodes, prior_prec, shared):
+    """`variance_components` without an M x M matrix product: the same estimates at O(M^2 P) time and O(M^2)
+    memory instead of O(M^3) and a design of M^2 / 2 rows (thousands of pairs in a network of hundreds of
+    nodes). Returns (t (3 + Q,), amp (Q, Q), pat (M, Q), B (P, M), parts): Sigma = t_I I + t_D diag(s^2) + t_N Z Z^T +
+    pat amp pat^T, never formed.
+
+    The weighted moment equations are solved through their Gram matrix: with X_a = M V_a M^T (M the
+    projection), D = diag(wn^2) and the upper triangle's entries weighted wn_k wn_l, the design's Gram
+    entries are (tr(V_a Q V_b Q) + sum_k wn_k^4 X_a,kk X_b,kk) / 2 with Q = M^T D M = D - E B - (E B)^T +
+    B^T (J^T D J) B (B = A^-1 J^T W, E = D J), each trace a sum over the (weighted) squares of Q, Q Z or
+    Q s; the right-hand side is (r^T V_a r + sum_k wn_k^4 e_k^2 X_a,kk) / 2 with r = M^T D e.
+    """
+    m = len(e)
+    s = np.asarray(spread, dtype=np.float64)
+    pat = s[:, None] if shared is None else np.asarray(shared, dtype=np.float64).reshape(m, -1)
+    a_inv = np.linalg.inv((jac.T * w) @ jac + np.diag(prior_prec))
+    b = a_inv @ (jac.T * w)  # (P, M): proj = I - J B
+    wn = w / np.max(w)
+    d = wn * wn
+    z = _incidence(i, j, m, n_nodes)
+    # Q = proj^T D proj, the one M x M matrix (built in place)
+    q = (jac * d[:, None]) @ b
+    q += q.T
+    q = (b.T @ ((jac.T * d) @ jac)) @ b - q
+    q[np.diag_indices(m)] += d
+    q2 = q * q
+    qz = np.asarray((z.T @ q).T)  # Q Z (M, N)
+    qp = q @ pat  # Q pat (M, Qp)
+    del q
+    diag_v = [np.ones(m), s * s]
+    n_c = 3 + pat.shape[1]
+    tr = np.zeros((n_c, n_c))
+    q2v = [q2 @ v for v in diag_v]
+    del q2
+    for a in range(2):
+        for c in range(2):
+            tr[a, c] = diag_v[a] @ q2v[c]
+        tr[a, 2] = diag_v[a] @ np.sum(qz * qz, axis=1)
+        tr[a, 3:] = diag_v[a] @ (qp * qp)
+    tr[2, 2] = np.sum(np.asarray(z.T @ qz) ** 2)
+    tr[2, 3:] = np.sum(np.asarray(z.T @ qp) ** 2, axis=0)
+    tr[3:, 3:] = (pat.T @ qp) ** 2
+    tr = np.triu(tr) + np.triu(tr, 1).T
+    # diagonals of X_a = proj V_a proj^T (proj = I - J B)
+    jb_diag = np.einsum("kp,pk->k", jac, b)
+    xd = np.zeros((m, n_c))
+    for a, v in enumerate(diag_v):
+        xd[:, a] = v * (1.0 - 2.0 * jb_diag) + np.sum((jac @ ((b * v) @ b.T)) * jac, axis=1)
+    pz = np.asarray(z.todense()) - jac @ np.asarray((z.T @ b.T).T)  # proj Z (M, N)
+    xd[:, 2] = np.sum(pz * pz, axis=1)
+    pp = pat - jac @ (b @ pat)  # proj pat
+    xd[:, 3:] = pp * pp
+    d2 = d * d
+    gram_d = 0.5 * (tr + (xd * d2[:, None]).T @ xd)
+    r = d * e - b.T @ (jac.T @ (d * e))  # proj^T D e
+    rv = np.r_[r @ r, (s * s) @ (r * r), np.sum(np.asarray(z.T @ r) ** 2), (pat.T @ r) ** 2]
+    h = 0.5 * (rv + xd.T @ (d2 * e * e))
+    # non-negative least squares on the Gram form: ||R t - R^-T h|| with G = R^T R
+    lam_g, vec_g = np.linalg.eigh(gram_d)
+    good = lam_g > 1e-14 * max(lam_g.max(), 1e-300)
+    rmat = (vec_g[:, good] * np.sqrt(lam_g[good])).T
+    t = nnls(rmat, (vec_g[:, good].T @ h) / np.sqrt(lam_g[good]))[0]
+
+    def sigma0_dot(u):  # Sigma_0 u without forming Sigma_0 (M, k)
+        return t[0] * u + t[1] * (s * s)[:, None] * u + t[2] * np.asarray(z @ (z.T @ u))
+
+    a_pat = pp * wn[:, None]
+    gram = a_pat.T @ pp
+    lam = np.linalg.eigvalsh(gram) if np.isfinite(gram).all() else np.zeros(1)
+    if lam.min() > 1e-12 * max(lam.max(), 1e-300):
+        ginv = np.linalg.inv(gram)
+        b_hat = ginv @ (a_pat.T @ e)
+        u = a_pat - b.T @ (jac.T @ a_pat)  # proj^T a
+        cov_b = ginv @ (u.T @ sigma0_dot(u)) @ ginv.T
+        amp = np.outer(b_hat, b_hat) + cov_b
+        info = np.diag(gram)
+    else:
+        b_hat, amp, info = np.full(pat.shape[1], np.nan), np.diag(t[3:]), np.diag(gram)
+    parts = {
+        "t_I": float(t[0]),
+        "t_D": float(t[1]),
+        "t_N": float(t[2]),
+        "t_S": np.diag(amp).tolist(),
+        "b_hat": np.atleast_1d(b_hat).tolist(),
+        "b_info": np.atleast_1d(info).tolist(),
+    }
+    return t, amp, pat, b, parts
+
+
 def pair_covariance(
     jac: np.ndarray,
     e: np.ndarray,
@@ -147,14 +243,17 @@ def pair_covariance(
         if not keep.any():
             return out, {}
         jk, pk = jac[:, keep], prior_prec[keep]
-        sigma, parts = variance_components(jk, np.asarray(e, dtype=np.float64), w, spread, i, j, n_nodes, pk, shared)
-        a_inv = np.linalg.inv((jk.T * w) @ jk + np.diag(pk))
+        e = np.asarray(e, dtype=np.float64)
+        t, amp, pat, g, parts = _components(jk, e, w, spread, np.asarray(i), np.asarray(j), n_nodes, pk, shared)
     except (np.linalg.LinAlgError, ValueError):
         return out, {}
-    g = a_inv @ (jk.T * w)  # (P', M) influence of each pair's error on the parameters
-    lam, vec = np.linalg.eigh(0.5 * (sigma + sigma.T))
-    root = g @ (vec * np.sqrt(np.maximum(lam, 0.0)))  # Cov = root root^T: PSD by construction
-    out[np.ix_(keep, keep)] = 0.5 * (root @ root.T + (root @ root.T).T)
+    # g = A^-1 J^T W (P', M): each pair's influence on the parameters; Cov = g Sigma g^T term by term (each
+    # PSD: t >= 0, amp PSD), never forming the (M, M) Sigma
+    s2 = np.asarray(spread, dtype=np.float64) ** 2
+    gz = np.asarray((_incidence(np.asarray(i), np.asarray(j), len(e), n_nodes).T @ g.T).T)
+    gp = g @ pat
+    cov = t[0] * (g @ g.T) + t[1] * ((g * s2) @ g.T) + t[2] * (gz @ gz.T) + gp @ amp @ gp.T
+    out[np.ix_(keep, keep)] = 0.5 * (cov + cov.T)
     return out, parts
 
 

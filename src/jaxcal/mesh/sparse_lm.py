@@ -72,6 +72,12 @@ class SparseLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
             parameters it depends on, and their positions in `ravel_pytree(y)`.
         lambda_floor: smallest damping relative to the mean diagonal of J^T J (keeps the factorisation
             finite along the gauge directions of a mesh, where J^T J is singular).
+        diag_tail: K > 0 when the last K parameters are decoupled from the others and from each other
+            (their block of J^T J is diagonal and the off-diagonal blocks are zero, e.g. offsets that no
+            residual uses, held by their prior rows alone): the damped system is then solved by a
+            Cholesky factorisation of the first P - K rows and elementwise on the tail, the same step at
+            O((P - K)^3) (P = 3 N + 1 -> 2 N + 1 in a mesh fit without per-node offsets: 3.4x fewer flops).
+            The caller guarantees the structure.
     """
 
     rtol: float
@@ -79,6 +85,7 @@ class SparseLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
     rows: RowsFn = eqx.field(static=True)
     lambda_floor: float = 1e-12
     norm: Callable = eqx.field(static=True, default=optx.max_norm)  # the criterion's norm (max |.|)
+    diag_tail: int = eqx.field(static=True, default=0)
 
     def _eval(self, y, args):
         f, g, idx = self.rows(y, args)
@@ -95,8 +102,11 @@ class SparseLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
         diag = jnp.diagonal(h)
         lam = jnp.maximum(state.lam, self.lambda_floor * jnp.mean(diag))
         a = h + lam * jnp.eye(flat.shape[0], dtype=h.dtype)
-        chol = jnp.linalg.cholesky(a)
-        delta = -jax.scipy.linalg.cho_solve((chol, True), grad)
+        head = flat.shape[0] - self.diag_tail
+        chol = jnp.linalg.cholesky(a[:head, :head])
+        delta = -jax.scipy.linalg.cho_solve((chol, True), grad[:head])
+        if self.diag_tail:
+            delta = jnp.concatenate([delta, -grad[head:] / jnp.diagonal(a)[head:]])
         y_new = unravel(flat + delta)
         f_new, _, _ = self._eval(y_new, args)
         cost, cost_new = 0.5 * jnp.sum(f * f), 0.5 * jnp.sum(f_new * f_new)
