@@ -10,7 +10,7 @@ counted), and whether the truth is inside the 95 % ellipsoid. Printed (JSON line
 (dataset, method), then one summary line per method over the simulated campaigns.
 
 Usage:
-    python benchmarks/uncertainty_trajectory.py [--methods nls,ls] [--sim-seeds 0-19] [--no-real]
+    python benchmarks/uncertainty_trajectory.py [--methods nls,ls] [--sim-seeds 0-19 | 1,3,5] [--no-real]
 """
 
 from __future__ import annotations
@@ -94,6 +94,11 @@ def line(label, method, rows):
     }
 
 
+def _seed_range(text: str) -> range:
+    a, _, b = text.partition("-")
+    return range(int(a), int(b or a) + 1)
+
+
 def main(argv=None) -> int:
     import jax
 
@@ -114,8 +119,7 @@ def main(argv=None) -> int:
             for m in methods:
                 rows = anchor_figures(calibrate(ds, m), ds.anchor_truth)
                 print(json.dumps(line(label, m, rows)), flush=True)
-    a, _, b = args.sim_seeds.partition("-")
-    seeds = range(int(a), int(b or a) + 1)
+    seeds = [s for part in args.sim_seeds.split(",") for s in _seed_range(part)]
     sims = {m: [] for m in methods}
     for seed in seeds:
         ds = simulate("small", seed=seed, drift=0.02 if seed % 2 else 0.0)

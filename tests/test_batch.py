@@ -708,3 +708,19 @@ def test_fixed_starts_and_local_relocation_reach_the_exhaustive_optimum():
         np.testing.assert_allclose(fast.position[fixed], ref.position[fixed], atol=1e-5, err_msg=str(seed))
         relocated += fast.cost < np.min(fast.start_costs) - 1e-6
     assert relocated >= 1  # the comparison exercised relocation
+
+
+def test_pair_weights_of_the_mixture_stay_at_most_one_near_its_shifted_mode():
+    # the mixture's psi does not vanish at e = 0 (its NLOS component shifts the mode), so psi(e) / e is
+    # singular there; the pair covariance's weights are capped at the Gaussian core's weight 1
+    nb = B._Numbers.of(B.BatchParams(loss="mixture"))
+    e = jnp.array([-1e-3, -1e-5, 1e-6, 1e-4, 0.05, 0.3, 3.0])
+    assert float(jnp.max(B._irls_weight(e, nb))) > 10.0  # the singularity the cap is for
+    x = jnp.array([[0.0, 0.0], [10.0, 0.0]])
+    obs = B.Observations(jnp.zeros(e.size, int), jnp.ones(e.size, int), 10.0 + e, jnp.ones(e.size))
+    w = np.asarray(B._range_weights(B._State(x, jnp.asarray(0.0), jnp.zeros(2)), obs, nb))
+    assert (w >= 0).all() and (w <= 1.0).all() and w[-1] < w[0]
+    cauchy = B._Numbers.of(B.BatchParams(loss="cauchy"))
+    np.testing.assert_allclose(
+        B._range_weights(B._State(x, jnp.asarray(0.0), jnp.zeros(2)), obs, cauchy), B._irls_weight(e, cauchy)
+    )

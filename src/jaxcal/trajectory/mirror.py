@@ -16,8 +16,8 @@ a third of the anchors, height errors of 2-5 m with predicted sd of 0.05-0.3 m).
    estimate (the two fits within `mirror_min_sep_m`) means the mirror is not a local optimum: nothing
    to decide.
 2. Otherwise compare the two optima by a non-nested likelihood-ratio test (Vuong's) whose variance is
-   cluster-robust: the per-range differences of the Cauchy loss are summed over the same `n_clusters`
-   consecutive stretches as `nls`'s covariance, and the sum D [nats] is divided by its sandwich standard
+   cluster-robust: the per-range differences of the Cauchy loss are summed over `n_clusters` (16)
+   consecutive stretches, and the sum D [nats] is divided by its sandwich standard
    deviation sqrt(G / (G - 1) sum_g (D_g - D / G)^2 + 1) (the 1 nat^2: a difference of a few nats is no
    evidence, and an exact mirror gives a 0 / 0 of rounding errors). Counted as independent, thousands of ranges would
    make any difference "significant"; errors that persist along a stretch count once.
@@ -109,7 +109,7 @@ def _cauchy_fit(pos, rng, mask, x0, c, max_steps: int):
     return sol.value, S.outcome(sol)
 
 
-def _compare_one(pos, rng, mask, est, n_clusters: int, min_scale: float, max_steps: int):
+def _compare_one(pos, rng, mask, est, n_clusters: int, min_scale: float, max_steps: int, cov_clusters: int = 4):
     r_est = rng - _dist(pos, est)
     b0 = jnp.nanmedian(jnp.where(mask, r_est, jnp.nan))
     c = jnp.maximum(2.385 * 1.4826 * jnp.nanmedian(jnp.where(mask, jnp.abs(r_est - b0), jnp.nan)), min_scale)
@@ -132,13 +132,15 @@ def _compare_one(pos, rng, mask, est, n_clusters: int, min_scale: float, max_ste
     w1 = jnp.where(mask, 1.0 / (1.0 + (res1 / c) ** 2), 0.0)
     sw1 = jnp.sqrt(w1)
     jac = jax.jacfwd(lambda x: sw1 * (_dist(pos, x[:3]) + x[3] - rng))(x1)
-    cov1 = irls_covariance(jac, sw1 * res1, w1, mask, n_clusters)[:3, :3]
+    cov1 = irls_covariance(jac, sw1 * res1, w1, mask, (cov_clusters, n_clusters))[:3, :3]
     return x0[:3], x1[:3], jnp.maximum(k0, k1), z, cov1
 
 
 @eqx.filter_jit
-def _compare_all(pos, rng, mask, est, n_clusters: int, min_scale: float, max_steps: int):
-    return jax.vmap(lambda p, r, m, e: _compare_one(p, r, m, e, n_clusters, min_scale, max_steps))(pos, rng, mask, est)
+def _compare_all(pos, rng, mask, est, n_clusters: int, min_scale: float, max_steps: int, cov_clusters: int = 4):
+    return jax.vmap(lambda p, r, m, e: _compare_one(p, r, m, e, n_clusters, min_scale, max_steps, cov_clusters))(
+        pos, rng, mask, est
+    )
 
 
 def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
@@ -185,6 +187,7 @@ def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
             int(getattr(p, "n_clusters", 16)),
             float(getattr(p, "min_scale_m", 0.05)),
             200,
+            int(getattr(p, "cov_clusters", 4)),
         )
     )
     distinct = (code == S.CONVERGED) & (np.linalg.norm(x1 - x0, axis=1) > p.mirror_min_sep_m) & np.isfinite(z)
