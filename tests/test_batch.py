@@ -521,10 +521,12 @@ def test_cli_calibrate_batch(tmp_path, rng):
 # ---------------------------------------------------------------------------------------------- posterior mean
 
 
-def _posterior_reference(pos_map, c_map, z, i, j, nu, n_draws, rng):
+def _posterior_reference(pos_map, c_map, z, i, j, nu, n_draws, rng, min_ess=2_000):
     """Self-normalised importance sampling of the pair-level posterior (`posterior_mean`'s model,
     written out in NumPy): frame coordinates (a0 = 0, a1 on +x, a2 free) and the offset c ~ N(0, 10^2);
-    proposal: multivariate t (4 dof) at the fit with 1.5^2 times the Laplace covariance."""
+    proposal: multivariate t (4 dof) at the fit with 1.5^2 times the Laplace covariance. Draws come in
+    batches of `n_draws` until the effective sample size reaches `min_ess` (on some noise draws the
+    weights are uneven enough that one batch is not a trustworthy reference)."""
     n, dim = pos_map.shape
     mask = np.ones((n, dim), dtype=bool)
     mask[0] = False
@@ -548,14 +550,19 @@ def _posterior_reference(pos_map, c_map, z, i, j, nu, n_draws, rng):
     cov = np.linalg.inv(jac.T @ jac / s**2 + np.diag(np.r_[np.zeros(p - 1), 0.01])) * 1.5**2
     chol = np.linalg.cholesky(cov)
     df = 4.0
-    g = rng.standard_normal((n_draws, p))
-    w_chi = rng.chisquare(df, n_draws) / df
-    draws = theta0 + (g @ chol.T) / np.sqrt(w_chi)[:, None]
-    maha = np.sum(np.linalg.solve(chol, (draws - theta0).T) ** 2, axis=0)
-    log_q = -0.5 * (df + p) * np.log1p(maha / df)
-    log_w = log_target(draws) - log_q
-    w = np.exp(log_w - log_w.max())
-    w /= w.sum()
+    parts, log_ws = [], []
+    while True:  # batches of n_draws until the effective sample size is above min_ess (at most 8 batches)
+        g = rng.standard_normal((n_draws, p))
+        w_chi = rng.chisquare(df, n_draws) / df
+        part = theta0 + (g @ chol.T) / np.sqrt(w_chi)[:, None]
+        maha = np.sum(np.linalg.solve(chol, (part - theta0).T) ** 2, axis=0)
+        parts.append(part)
+        log_ws.append(log_target(part) + 0.5 * (df + p) * np.log1p(maha / df))  # log target - log proposal
+        draws, log_w = np.concatenate(parts), np.concatenate(log_ws)
+        w = np.exp(log_w - log_w.max())
+        w /= w.sum()
+        if 1.0 / np.sum(w * w) > min_ess or len(parts) == 8:
+            break
     mean = w @ draws
     cov_post = (draws - mean).T @ ((draws - mean) * w[:, None])
     return mean, cov_post, 1.0 / np.sum(w * w), mask
