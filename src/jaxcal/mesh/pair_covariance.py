@@ -57,6 +57,18 @@ def pair_spread(range_m: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray
     return out
 
 
+def _parts(t, amp, b_hat, info) -> dict:
+    """The fitted variance components as plain numbers (the `parts` of the result's params)."""
+    return {
+        "t_I": float(t[0]),
+        "t_D": float(t[1]),
+        "t_N": float(t[2]),
+        "t_S": np.diag(amp).tolist(),
+        "b_hat": np.atleast_1d(b_hat).tolist(),
+        "b_info": np.atleast_1d(info).tolist(),
+    }
+
+
 def variance_components(
     jac: np.ndarray,
     e: np.ndarray,
@@ -112,14 +124,7 @@ def variance_components(
     else:  # a pattern that leaves nothing in the residuals (e.g. constant, with a fitted offset)
         b_hat, amp, info = np.full(pat.shape[1], np.nan), np.diag(t[3:]), np.diag(gram)
     sigma = sigma0 + pat @ amp @ pat.T
-    return sigma, {
-        "t_I": float(t[0]),
-        "t_D": float(t[1]),
-        "t_N": float(t[2]),
-        "t_S": np.diag(amp).tolist(),
-        "b_hat": np.atleast_1d(b_hat).tolist(),
-        "b_info": np.atleast_1d(info).tolist(),
-    }
+    return sigma, _parts(t, amp, b_hat, info)
 
 
 def _incidence(i: np.ndarray, j: np.ndarray, m: int, n_nodes: int) -> csr_matrix:
@@ -206,15 +211,7 @@ def _components(jac, e, w, spread, i, j, n_nodes, prior_prec, shared):
         info = np.diag(gram)
     else:
         b_hat, amp, info = np.full(pat.shape[1], np.nan), np.diag(t[3:]), np.diag(gram)
-    parts = {
-        "t_I": float(t[0]),
-        "t_D": float(t[1]),
-        "t_N": float(t[2]),
-        "t_S": np.diag(amp).tolist(),
-        "b_hat": np.atleast_1d(b_hat).tolist(),
-        "b_info": np.atleast_1d(info).tolist(),
-    }
-    return t, amp, pat, b, parts
+    return t, amp, pat, b, _parts(t, amp, b_hat, info)
 
 
 def pair_covariance(
