@@ -81,7 +81,15 @@ def calibrate(
     """Calibrate `dataset` (MeshDataset or TrajectoryDataset) with a registered method -> Result.
 
     `progress`: optional callback for the methods in `WITH_PROGRESS` (others ignore it), called with
-    the epochs done since its last call."""
+    the epochs done since its last call. Runs with one BLAS thread (`jaxcal.blas_threads`): the fits
+    factor small dense matrices thousands of times, where OpenBLAS's worker threads cost more than they
+    give (the command line also sets OPENBLAS_NUM_THREADS=1 unless the user has set it)."""
+    from jaxcal.blas_threads import one_blas_thread
+
+    return one_blas_thread(_calibrate)(dataset, method, params, config, progress)
+
+
+def _calibrate(dataset, method: str, params, config, progress):
     from jaxcal.data import MeshDataset
 
     kind = "mesh" if isinstance(dataset, MeshDataset) else "trajectory"
