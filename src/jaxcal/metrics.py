@@ -185,6 +185,7 @@ def qq_r2(dataset: MeshDataset | TrajectoryDataset, n_quantiles: int = 101) -> d
     """
     err, _ = ranging_errors(dataset)
     if isinstance(dataset, MeshDataset):
+        assert dataset.truth is not None  # ranging_errors refuses a dataset without truth
         d = mesh_true_distances(dataset.truth)
         n = dataset.n_nodes
         r = dataset.range.astype(np.float64)
@@ -366,8 +367,11 @@ def covariance_consistency(result: Result, dataset: MeshDataset | TrajectoryData
     parts = {"": np.arange(d)}
     if d == 3:
         parts.update({"h_": np.arange(2), "v_": np.array([2])})
-    acc = {k: {"sq": [], "tr": [], "nees": 0.0, "dof": 0} for k in parts}
-    inside = []
+    sq: dict[str, list[float]] = {k: [] for k in parts}  # squared errors, per node
+    tr: dict[str, list[float]] = {k: [] for k in parts}  # predicted squared errors (covariance traces)
+    nees: dict[str, float] = dict.fromkeys(parts, 0.0)
+    dof: dict[str, int] = dict.fromkeys(parts, 0)
+    inside: list[bool] = []
     for k in range(len(result.ids)):
         e_all, c_all = result.position[k] - truth[k], np.asarray(result.covariance[k], dtype=np.float64)
         if k == a0 or not np.isfinite(truth[k]).all():
@@ -381,23 +385,23 @@ def covariance_consistency(result: Result, dataset: MeshDataset | TrajectoryData
             if not np.isfinite(c).all():
                 continue
             free = np.diag(c) > 1e-12
-            acc[name]["sq"].append(float(e @ e))
-            acc[name]["tr"].append(float(np.trace(c)))
+            sq[name].append(float(e @ e))
+            tr[name].append(float(np.trace(c)))
             if free.any():
                 q = float(e[free] @ np.linalg.lstsq(c[np.ix_(free, free)], e[free], rcond=None)[0])
-                acc[name]["nees"] += q
-                acc[name]["dof"] += int(free.sum())
+                nees[name] += q
+                dof[name] += int(free.sum())
                 if name == "":
                     inside.append(q <= chi2.ppf(0.95, int(free.sum())))
-    if not acc[""]["sq"]:
+    if not sq[""]:
         return None
-    out = {"nodes": len(acc[""]["sq"])}
-    for name, a in acc.items():
-        if not a["sq"]:
+    out: dict[str, float] = {"nodes": len(sq[""])}
+    for name in parts:
+        if not sq[name]:
             continue
-        out[f"{name}error_rmse_m"] = float(np.sqrt(np.mean(a["sq"])))
-        out[f"{name}predicted_rmse_m"] = float(np.sqrt(np.mean(a["tr"])))
-        out[f"{name}nees_per_dof"] = a["nees"] / a["dof"] if a["dof"] else float("nan")
+        out[f"{name}error_rmse_m"] = float(np.sqrt(np.mean(sq[name])))
+        out[f"{name}predicted_rmse_m"] = float(np.sqrt(np.mean(tr[name])))
+        out[f"{name}nees_per_dof"] = nees[name] / dof[name] if dof[name] else float("nan")
     out["coverage95"] = float(np.mean(inside)) if inside else float("nan")
     return out
 

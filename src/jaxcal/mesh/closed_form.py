@@ -211,7 +211,8 @@ def _proxy(range_m, dist, track, anchors, p: ClosedFormParams, n_proxy: int = 3)
     near = np.zeros(med_d.shape, dtype=bool)
     near[[a0, a1, a2], :] = True
     near = (near | near.T) & np.isfinite(med_d)
-    found_all, tried = [], [tuple(sorted(anchors))]
+    found_all: list[tuple[float, int, np.ndarray, np.ndarray]] = []  # (median residual, order, track, median)
+    tried = [tuple(sorted(anchors))]
     for _ in range(n_proxy):
         found = choose_frame(range_m, exclude=tried)
         if found is None:

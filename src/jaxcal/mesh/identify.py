@@ -188,23 +188,23 @@ def identify(measured: np.ndarray, anchors, dim: int = 2, ids=None, seed: int = 
         fixed = np.zeros(n, dtype=bool)
         fixed[nodes] = _rigid_in_frame(adj, nodes, anchors, dim, x)
         peel = []
-        for i in np.flatnonzero(fixed):
-            nb = set(np.flatnonzero(adj[i] & fixed).tolist())
-            if not _mirror_ok(int(i), nb, anchors, dim):
-                peel.append(int(i))
-                only = sorted(nb)
-                reason[i] = f"{ids[i]} ranges only {_names(only, ids)}" if only else f"{ids[i]} has no fixed neighbour"
+        for k in np.flatnonzero(fixed).tolist():
+            placed = set(np.flatnonzero(adj[k] & fixed).tolist())
+            if not _mirror_ok(k, placed, anchors, dim):
+                peel.append(k)
+                only = sorted(placed)
+                reason[k] = f"{ids[k]} ranges only {_names(only, ids)}" if only else f"{ids[k]} has no fixed neighbour"
         if not peel:
             break
         alive[peel] = False
     frame_fixed = bool(fixed[a1] and fixed[a2])
     for i in range(n):
         if not fixed[i] and not reason[i]:
-            nb = np.flatnonzero(adj[i])
-            if nb.size <= dim:
-                reason[i] = f"{ids[i]} ranges only {_names(nb, ids)}"
+            nbrs = np.flatnonzero(adj[i])
+            if nbrs.size <= dim:
+                reason[i] = f"{ids[i]} ranges only {_names(nbrs, ids)}"
             else:
-                reason[i] = f"{ids[i]} is not rigidly connected to the frame (ranges {_names(nb, ids)})"
+                reason[i] = f"{ids[i]} is not rigidly connected to the frame (ranges {_names(nbrs, ids)})"
     if not frame_fixed:
         keep = {a0} | ({a1} if fixed[a1] else set())
         for i in range(n):

@@ -82,7 +82,7 @@ class SparseLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
 
     rtol: float
     atol: float
-    rows: RowsFn = eqx.field(static=True)
+    rows: RowsFn = eqx.field(static=True, kw_only=True)
     lambda_floor: float = 1e-12
     norm: Callable = eqx.field(static=True, default=optx.max_norm)  # the criterion's norm (max |.|)
     diag_tail: int = eqx.field(static=True, default=0)
