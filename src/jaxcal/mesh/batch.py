@@ -823,7 +823,7 @@ def posterior_excess(cov_post: np.ndarray, laplace: np.ndarray, nu: float) -> np
     pair covariance (`pair_covariance`) cannot see. The posterior itself is not a covariance of the
     error: it has no per-pair systematic errors that the geometry absorbs, and its Cauchy tails make it
     twice as wide as its scale in every well-determined direction; the union of the two (before) was
-    too wide in the family benchmarks (NEES/dof median 0.48-0.53, coverage 98-100 %)."""
+    too wide in the family benchmarks (NEES/dof median 0.48-0.56, coverage 98-100 %)."""
     lap = 0.5 * (laplace + laplace.T)
     return covariance_union(lap, (nu + 1.0) / (nu + 3.0) * cov_post) - lap
 
