@@ -270,6 +270,19 @@ def test_covariance_union_contains_both(rng):
     np.testing.assert_allclose(B.covariance_union(a, a), a, atol=1e-12)
 
 
+def test_posterior_excess_is_what_the_scaled_posterior_adds_to_its_linearisation(rng):
+    for nu in (1.0, 4.0):
+        k = (nu + 1.0) / (nu + 3.0)
+        for _ in range(10):
+            lap, extra, other = (m @ m.T for m in rng.normal(size=(3, 5, 5)))
+            extra = extra[:, :2] @ extra[:2, :2] @ extra[:, :2].T  # rank 2: curved in two directions only
+            np.testing.assert_allclose(B.posterior_excess((lap + extra) / k, lap, nu), extra, atol=1e-9)
+            np.testing.assert_allclose(B.posterior_excess(0.5 * lap / k, lap, nu), 0.0, atol=1e-9)
+            got = B.posterior_excess(other, lap, nu)  # k C - L indefinite: its positive part
+            assert np.linalg.eigvalsh(got).min() > -1e-9 * np.abs(got).max()
+            assert np.linalg.eigvalsh(got - (k * other - lap)).min() > -1e-9 * np.abs(got).max()
+
+
 def _pair_covariance_reference(jac, e, w, spread, i, j, n):
     """The per-pair error covariance written out entry by entry (slow): A = J^T W J; residual projection
     P = I - J A^-1 J^T W; components V_I = I, V_D = diag(s^2), V_N[k, l] = #nodes shared by pairs k, l,
@@ -596,11 +609,12 @@ def test_posterior_mean_equals_importance_sampling_reference(rng):
     np.testing.assert_array_less(np.abs(got - ref_mean), 0.12 * sd + 1e-9)
     got_sd = np.sqrt(np.r_[[sol.model_covariance[k][a, a] for k, a in zip(*np.nonzero(mask), strict=False)]])
     np.testing.assert_allclose(got_sd, sd[:-1], rtol=0.15)
-    # what is reported contains the posterior (and the pair-level sandwich) in every direction
+    # what is reported (the pair covariance plus the posterior's excess over its linearisation,
+    # `test_posterior_excess_...`) is a covariance, finite for every fixed node
     for k in range(n):
         if mask[k].any():
-            c, c0 = sol.covariance[k], sol.model_covariance[k]
-            assert np.linalg.eigvalsh(c - c0).min() > -1e-12 * np.abs(c).max()
+            c = sol.covariance[k]
+            assert np.isfinite(c).all() and np.linalg.eigvalsh(c).min() > -1e-12 * np.abs(c).max()
 
 
 def test_split_rhat_reference():

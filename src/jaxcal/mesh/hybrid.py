@@ -7,8 +7,9 @@ never ends in a worse optimum of its own objective than batch alone; whether it 
 against truth is measured (benchmarks/peers.py), not assumed.
 
 The result keeps PGP's per-epoch track (`track/*`) and reports the refined final positions and the batch
-covariance (`position`, `covariance`): with batch's default `estimate=mean`, the posterior mean and
-covariance sampled around that optimum (`batch.posterior_mean`).
+covariance (`position`, `covariance`): with batch's default `estimate=mean`, the posterior mean sampled
+around that optimum (`batch.posterior_mean`) and the pair-level covariance at it, widened where that
+posterior is curved (`batch.posterior_excess`).
 
 Parameters: keys prefixed `pgp.` or `batch.` go to that stage (e.g. `--set pgp.cell_m=0.25 --set
 batch.loss=huber`); an unprefixed key goes to every stage that knows it (e.g. `sigma_r`), and is an error if
