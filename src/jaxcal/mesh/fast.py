@@ -322,6 +322,4 @@ def ring_loglik_grid(
     same result up to rounding; not to be `vmap`ped (see `node_loglik_sparse`). `remat`: as in
     `node_loglik_sparse`."""
     org = jnp.zeros((2,), jnp.int32)
-    return ring_loglik_loop(
-        org, grid.n_side, grid, hyp_pos, hyp_logw, hyp_sigma, z_i, use_i, p_out, nlos, span, remat
-    )
+    return ring_loglik_loop(org, grid.n_side, grid, hyp_pos, hyp_logw, hyp_sigma, z_i, use_i, p_out, nlos, span, remat)

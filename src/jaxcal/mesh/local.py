@@ -245,16 +245,33 @@ def _node(cfg: LocalConfig, prm, hyps, step_m, nlos, x):
     (placed, level, fine, forg, wide, worg, top_v, top_i, try_small, raw, ev, ran, conc, dropped) with
     `ran` 0 none, 1 small, 2 big, 3 wide, 4 wide with its bound failed, `dropped` then the log of its
     bound on the mass outside (else -inf)."""
-    (kind, placed, loc, level, fine, forg, wide, worg, top_v, top_i, try_small, conc, z_i, use_i, centre, log_cells, nb) = x
+    kind, placed, loc, level, fine, forg, wide, worg, top_v, top_i, try_small, conc = x[:12]
+    z_i, use_i, centre, log_cells, nb = x[12:]
     hyps = tuple(h[nb] for h in hyps)  # the node's possible neighbours only
     dtype = fine.dtype
+    none = jnp.asarray(-jnp.inf, dtype)
     ns, n_half = cfg.grid.n_side, cfg.grid.n_half
     nan2 = jnp.full((2,), jnp.nan, dtype)
     b, w_l = cfg.big, cfg.wide
     any_use = jnp.any(use_i)
 
     def keep():
-        return (placed, level, fine, forg, wide, worg, top_v, top_i, try_small, nan2, jnp.zeros((), dtype), _i(0), conc, jnp.asarray(-jnp.inf, dtype))
+        return (
+            placed,
+            level,
+            fine,
+            forg,
+            wide,
+            worg,
+            top_v,
+            top_i,
+            try_small,
+            nan2,
+            jnp.zeros((), dtype),
+            _i(0),
+            conc,
+            none,
+        )
 
     def static():  # not localised: the product of its factors on the wide grid
         org = jnp.where(placed, worg, F.window_origin(centre[0] * ns + centre[1], ns, w_l))
@@ -271,7 +288,7 @@ def _node(cfg: LocalConfig, prm, hyps, step_m, nlos, x):
         near = jnp.sum(jnp.square(cells - _positions(cfg, ti[0], dtype)), axis=-1) <= cfg.localise_m**2
         held = jnp.sum(jnp.where(near, jnp.exp(post.reshape(-1)), 0.0)) >= CONC_MASS
         held = held | (cfg.localise_m <= 0)
-        return (jnp.asarray(True), _i(1), fine, forg, post, org, tv, ti, try_small, raw, ev, _i(3), held, jnp.asarray(-jnp.inf, dtype))
+        return (jnp.asarray(True), _i(1), fine, forg, post, org, tv, ti, try_small, raw, ev, _i(3), held, none)
 
     def moving():  # localised: eq. (7)-(8) from its top_k cells onto a window around the best one
         src = _positions(cfg, top_i, dtype)
@@ -307,7 +324,7 @@ def _node(cfg: LocalConfig, prm, hyps, step_m, nlos, x):
                 org = o_b
             tv, ti = _top(cfg, out, org)
             raw = _estimate(cfg, prm, out, org)
-            return (placed, _i(0), out, org, wide, worg, tv, ti, nxt, raw, ev, _i(ran), conc, jnp.asarray(-jnp.inf, dtype))
+            return (placed, _i(0), out, org, wide, worg, tv, ti, nxt, raw, ev, _i(ran), conc, none)
 
         def wide_run():
             post, org, ev, held, outb = run(w_l)
