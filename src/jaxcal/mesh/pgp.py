@@ -53,6 +53,13 @@ kept as the reference) up to rounding. `run_pgp` drives the scan from the host i
 and sweeps) computes the same epochs. Speed: `benchmarks/pgp_speed.py` (figures on the benchmarks
 page of the docs, "PGP speed").
 `start`/`advance` feed epochs as they arrive (live calibration); chunks equal one run.
+
+Large sites (issue #26): the one grid grows with the site's area, so at constant density its cost
+grows as N^2 and `extent_m` cuts off nodes beyond 60 m. `grid_mode="auto"` (default) runs such sites
+(the full grid wider than one node-local grid, i.e. the site wider than radio range) on node-local grids
+(`local.py`): the same epochs where each node's mass lies in its own grids (tested), at a cost that
+follows the measured pairs, with a stricter localisation rule (`localise_m`). Sites within radio range
+(torgau and the other small recordings) run on the one grid as before.
 """
 
 from __future__ import annotations
