@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from conftest import mesh_of, random_layout
+from jaxcal.mesh import grid as G
 from jaxcal.mesh import local as L
 from jaxcal.mesh import pgp
 from jaxcal.mesh.pgp import PGPParams, run_pgp
@@ -33,36 +34,41 @@ def site(rng, k=12, n=9, span=16.0, limit=9.0, noise=0.05):
 
 
 def run_local(ds, params):
-    """`run_pgp`'s local path, returning its per-epoch outputs too."""
+    """`run_pgp`'s local path: (cfg, per-epoch outputs, final covariance), nodes in filter order."""
     p = PGPParams(**params)
-    a = ds.config(None)
-    setup = pgp._local_setup(ds, p, a, "pgp", False)
+    setup = pgp._local_setup(ds, p, (0, 1, 2), "pgp", False)
     assert setup is not None
     order, z, dt, lattice, wide = setup
     n = ds.n_nodes
     allowed, need = pgp._neighbour_sets(p, n)
     cfg, kind, log_cells, nbrs = L.setup(p, n, z, allowed, lattice, wide)
     prm = pgp.FilterParams(*(jnp.asarray(getattr(p, f), float) for f in pgp.NUMERIC))
-    st, out, cov = L.run_local(cfg, prm, jnp.asarray(allowed), jnp.asarray(need, float), kind, log_cells, nbrs, z, dt)
-    return cfg, out
+    _, out, cov = L.run_local(cfg, prm, jnp.asarray(allowed), jnp.asarray(need, float), kind, log_cells, nbrs, z, dt)
+    return cfg, out, cov
 
 
 def test_local_grids_equal_the_full_grid_where_they_hold_the_mass(rng):
     """With `localise_m=0` (the global grid's localisation rule) the node-local grids compute the
-    full-grid filter's epochs: same tracks to rounding, whenever no node's mass left its grids."""
+    full-grid filter's epochs: same tracks and covariances to rounding, whenever no node's mass left its
+    grids."""
     ds = site(rng)
-    base = dict(SMALL, localise_m=0.0, frame="direct")
-    glob, _ = run_pgp(ds, dict(base, grid_mode="global", extent_m=100.0))
-    loc, _ = run_pgp(ds, dict(base, grid_mode="local"))
-    cfg, out = run_local(ds, dict(base, grid_mode="local"))
-    full = pgp._local_setup(ds, PGPParams(**dict(base, extent_m=100.0)), (0, 1, 2), "pgp", False)[3]
-    assert cfg.wide < full.n_side  # the local grids are smaller than the site
+    base = dict(SMALL, localise_m=0.0, grid_mode="local")
+    cfg, out, cov = run_local(ds, base)
+    # the reference: the full-grid filter (`run_filter`, one scan) on a grid holding the whole site
+    g_cfg, prm, inp, lp0, order = pgp.prepare(ds, PGPParams(**dict(base, extent_m=100.0)), None)
+    np.testing.assert_array_equal(order, np.arange(ds.n_nodes))
+    st, ref = pgp.run_filter(g_cfg, prm, inp, lp0)
+    assert cfg.wide < g_cfg.grid.n_side  # the local grids are smaller than the site
     assert int(np.asarray(out.lost).sum()) == 0  # every node's mass inside its grids
     assert int(np.asarray(out.n_wide).sum()) > 0
-    a, b = np.asarray(glob.track_position), np.asarray(loc.track_position)
+    a, b = np.asarray(ref.estimate), np.asarray(out.estimate)
     np.testing.assert_array_equal(np.isfinite(a), np.isfinite(b))
+    assert np.isfinite(b).any()
     np.testing.assert_allclose(b, a, atol=1e-6, equal_nan=True)
-    np.testing.assert_allclose(loc.covariance, glob.covariance, atol=1e-6, equal_nan=True)
+    cells = g_cfg.grid.cells(float)
+    ref_cov = np.stack([np.asarray(G.mean_cov(lp.reshape(-1), cells)[1]) for lp in st.logpost])
+    placed = np.isfinite(b[-1]).all(axis=1)
+    np.testing.assert_allclose(np.asarray(cov)[placed], ref_cov[placed], atol=1e-6)
 
 
 def test_auto_takes_local_grids_for_large_sites_only(rng):
