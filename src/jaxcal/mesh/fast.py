@@ -41,6 +41,7 @@ __all__ = [
     "window_mask",
     "RING_SPAN",
     "ring_loglik",
+    "ring_loglik_loop",
     "ring_loglik_grid",
 ]
 
@@ -266,6 +267,43 @@ def ring_loglik(
     return jnp.sum(ll, axis=0).reshape(-1), jnp.all(ok | ~use_i)
 
 
+def ring_loglik_loop(
+    org: Int[Array, " 2"],
+    w: int,
+    grid: G.Grid,
+    hyp_pos: Float[Array, "nodes hyp 2"],
+    hyp_logw: Float[Array, "nodes hyp"],
+    hyp_sigma: Float[Array, " nodes"],
+    z_i: Float[Array, " nodes"],
+    use_i: Bool[Array, " nodes"],
+    p_out: Float[Array, ""],
+    nlos=None,
+    span: int = RING_SPAN,
+    remat: bool = False,
+) -> Float[Array, " cells"]:
+    """`ring_loglik` (same arguments, same values) as a loop over the neighbours that skips those
+    without a range; a pair whose image is not exact is evaluated by `grid.pair_loglik` on the
+    window's cells. Cost ~ used pairs, for large windows with few used neighbours. Not to be
+    `vmap`ped (a batched `cond` runs both branches). `remat`: as in `grid.node_loglik_sparse`."""
+    n = hyp_logw.shape[0]
+    dtype = hyp_logw.dtype
+
+    def neighbour(j, acc):
+        def add(acc):
+            fac, ok = _ring_factor(org, w, grid, hyp_pos[j], hyp_logw[j], hyp_sigma[j], z_i[j], p_out, nlos, span)
+
+            def direct():
+                cells = window_cells(org, grid, w, dtype)
+                ll = G.pair_loglik(cells, hyp_pos[j], hyp_logw[j], z_i[j], hyp_sigma[j], p_out, nlos)
+                return ll.reshape(w, w)
+
+            return acc + jax.lax.cond(ok, lambda: jnp.log(fac), direct)
+
+        return jax.lax.cond(use_i[j], jax.checkpoint(add) if remat else add, lambda a: a, acc)
+
+    return jax.lax.fori_loop(0, n, neighbour, jnp.zeros((w, w), dtype)).reshape(-1)
+
+
 def ring_loglik_grid(
     grid: G.Grid,
     hyp_pos: Float[Array, "nodes hyp 2"],
@@ -283,21 +321,5 @@ def ring_loglik_grid(
     `ring_loglik`) is evaluated by `grid.pair_loglik`. Same arguments (but the grid for the cells),
     same result up to rounding; not to be `vmap`ped (see `node_loglik_sparse`). `remat`: as in
     `node_loglik_sparse`."""
-    n, ns = hyp_logw.shape[0], grid.n_side
     org = jnp.zeros((2,), jnp.int32)
-
-    def neighbour(j, acc):
-        def add(acc):
-            fac, ok = _ring_factor(org, ns, grid, hyp_pos[j], hyp_logw[j], hyp_sigma[j], z_i[j], p_out, nlos, span)
-
-            def direct():
-                cells = grid.cells(hyp_logw.dtype)
-                ll = G.pair_loglik(cells, hyp_pos[j], hyp_logw[j], z_i[j], hyp_sigma[j], p_out, nlos)
-                return ll.reshape(ns, ns)
-
-            return acc + jax.lax.cond(ok, lambda: jnp.log(fac), direct)
-
-        return jax.lax.cond(use_i[j], jax.checkpoint(add) if remat else add, lambda a: a, acc)
-
-    acc = jax.lax.fori_loop(0, n, neighbour, jnp.zeros((ns, ns), hyp_logw.dtype))
-    return acc.reshape(-1)
+    return ring_loglik_loop(org, grid.n_side, grid, hyp_pos, hyp_logw, hyp_sigma, z_i, use_i, p_out, nlos, span, remat)
