@@ -35,6 +35,7 @@ __all__ = [
     "is_planar",
     "height_dop_ratio",
     "unobservable_height",
+    "widen_covariance",
     "report_fits",
     "finish",
 ]
@@ -54,6 +55,9 @@ class TrajectoryParams(eqx.Module):
             other side of the path's plane that converges more than mirror_min_sep_m [m] away is compared
             with the estimate; within mirror_z cluster-robust standard deviations the height is left NaN,
             below -mirror_z the other side replaces the estimate (mirror_z = 0: no check).
+        mirror_profile: fits across the path's plane in the mirror-image check's profile (step 4 of
+            `jaxcal.trajectory.mirror`: the covariance is widened to hold those that fit within mirror_z,
+            and one of them on the other side leaves the height NaN); 0 or 1: no profile.
         order, knot_dt_s, max_gap_s: pose B-spline (order 4 = cubic; 0 = automatic).
         time_offset_s, estimate_offset, max_offset_s: pose minus range clock offset [s] and its search.
     """
@@ -65,6 +69,7 @@ class TrajectoryParams(eqx.Module):
     side: float = 1.0
     mirror_z: float = 2.0
     mirror_min_sep_m: float = 0.25
+    mirror_profile: int = 17
     order: int = 4
     knot_dt_s: float = 0.0
     max_gap_s: float = 0.0
@@ -169,6 +174,15 @@ def unobservable_height(groups, est: np.ndarray, p) -> tuple[np.ndarray, np.ndar
         if bool(is_planar(zstd[a], hstd, p.planar_tol_m, p.planar_ratio)):
             out[a] = height_dop_ratio(q, est[a]) > p.max_height_dop
     return out, zstd
+
+
+def widen_covariance(cov: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    """(3, 3) covariance `cov` raised, in every direction where it is smaller, to `floor`."""
+    cov = 0.5 * (cov + cov.T)
+    d = 0.5 * (floor + floor.T) - cov
+    lam, vec = np.linalg.eigh(d)
+    out = cov + (vec * np.maximum(lam, 0.0)) @ vec.T
+    return 0.5 * (out + out.T)
 
 
 def report_fits(method: str, codes, groups, p, hint: str):
