@@ -251,6 +251,7 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None) -> Result:
         unobservable_height=[ids[a] for a in np.flatnonzero(flat)],
         mirror_ambiguous=[ids[a] for a in np.flatnonzero(sides.ambiguous)],
         mirror_moved=[ids[a] for a in np.flatnonzero(sides.moved)],
+        mirror_widened=[ids[a] for a in np.flatnonzero(sides.widened)],
         mirror_z={ids[a]: round(float(sides.z[a]), 3) for a in np.flatnonzero(sides.checked)},
     )
     params = as_dict(p)

@@ -163,7 +163,8 @@ class GPParams(TrajectoryParams):
         bound_clusters: `mean=anchor` only: the `nls` covariance that weighs the `nls` answer in `fuse` and
             sizes `max_shift_sigma`: the cluster jackknife over this many stretches (0: the model
             covariance s^2 (J^T W J)^-1; -1: the covariance `nls` reports, over `cov_clusters` and
-            `n_clusters` stretches). The reported covariance is at least the one `nls` reports either way.
+            `n_clusters` stretches). Either way the covariance is at least the one `nls` reports before the
+            mirror check's profile (which then widens each method's about its own estimate).
         block, max_ranges: `mean=anchor` only: the GP's covariance is block-diagonal over blocks
             of `block` consecutive ranges, on at most `max_ranges` ranges per anchor (evenly thinned
             in time); `block=0` (default): one dense GP on the stratified `n_train` subsample.
