@@ -142,6 +142,7 @@ def main():
     ap.add_argument("files", nargs="*")
     ap.add_argument("--seeds", type=int, default=0)
     ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--seed-step", type=int, default=1, help="2: every other seed (a development or report half)")
     ap.add_argument("--scenario", nargs="*", default=["campus"])
     ap.add_argument("--drift", nargs="*", type=float, default=[0.0, 0.05])
     ap.add_argument("--methods", nargs="*", default=["ls", "nls", "gp", "scipy"])
@@ -162,7 +163,7 @@ def main():
 
         for sc in a.scenario:
             for drift in a.drift:
-                for seed in range(a.first_seed, a.first_seed + a.seeds):
+                for seed in range(a.first_seed, a.first_seed + a.seeds * a.seed_step, a.seed_step):
                     ds = simulate(sc, seed=seed, drift=drift)
                     for m, p in configs:
                         evaluate(ds, m, p, f"{sc} drift={drift:g} seed={seed}")

@@ -185,3 +185,28 @@ def test_height_from_a_flat_path_is_nan_with_one_warning_line(caplog):
     assert np.isfinite(res.position[1:]).all()
     assert len(caplog.records) == 1 and "(low)" in caplog.text and "\n" not in caplog.records[0].getMessage()
     assert res.params["info_unobservable_height"] == ["low"]
+
+
+def test_covariance_at_the_fit_is_nls_covariance_and_its_parts_are_narrower():
+    """`covariances_at` at nls's fit with nls's stretch counts gives the covariance nls reports; the model
+    covariance (gp's default `bound_clusters=0`) is no wider in any direction, and a single jackknife is
+    at least the model covariance. (The single jackknife need not be below the reported one: each widening
+    raises the covariance to another, and no smallest covariance above two exists in general.)"""
+    import jax.numpy as jnp
+
+    from jaxcal.trajectory.poses import prepare_poses
+
+    ds = lissajous(noise=0.05, outliers=20, seed=3)
+    p = nls.NLSParams()
+    groups, _ = prepare_poses(ds, p)
+    (est, cov, bias, _), _, _ = nls.solve_all_checked(groups, p)
+    x4 = jnp.concatenate([est, bias[:, None]], axis=1)
+    args = (groups.position, groups.range, groups.mask, x4, p)
+    np.testing.assert_allclose(nls.covariances_at(*args, (p.cov_clusters, p.n_clusters)), cov, rtol=1e-8, atol=1e-14)
+    model = np.asarray(nls.covariances_at(*args, ()))
+    for a in range(3):
+        assert np.linalg.eigvalsh(model[a]).min() > 0
+        assert np.linalg.eigvalsh(np.asarray(cov[a]) - model[a]).min() > -1e-12 * np.trace(model[a])
+        for part in ((16,), (4,)):
+            jack = np.asarray(nls.covariances_at(*args, part))[a]
+            assert np.linalg.eigvalsh(jack - model[a]).min() > -1e-12 * np.trace(model[a])

@@ -35,6 +35,7 @@ __all__ = [
     "is_planar",
     "height_dop_ratio",
     "unobservable_height",
+    "widen_covariance",
     "report_fits",
     "finish",
 ]
@@ -54,6 +55,9 @@ class TrajectoryParams(eqx.Module):
             other side of the path's plane that converges more than mirror_min_sep_m [m] away is compared
             with the estimate; within mirror_z cluster-robust standard deviations the height is left NaN,
             below -mirror_z the other side replaces the estimate (mirror_z = 0: no check).
+        mirror_profile: fits across the path's plane in the mirror-image check's profile (step 4 of
+            `jaxcal.trajectory.mirror`: the covariance is widened to hold those that fit within mirror_z,
+            and one of them on the other side leaves the height NaN); 0 or 1: no profile.
         order, knot_dt_s, max_gap_s: pose B-spline (order 4 = cubic; 0 = automatic).
         time_offset_s, estimate_offset, max_offset_s: pose minus range clock offset [s] and its search.
     """
@@ -65,6 +69,7 @@ class TrajectoryParams(eqx.Module):
     side: float = 1.0
     mirror_z: float = 2.0
     mirror_min_sep_m: float = 0.25
+    mirror_profile: int = 17
     order: int = 4
     knot_dt_s: float = 0.0
     max_gap_s: float = 0.0
@@ -171,6 +176,15 @@ def unobservable_height(groups, est: np.ndarray, p) -> tuple[np.ndarray, np.ndar
     return out, zstd
 
 
+def widen_covariance(cov: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    """(3, 3) covariance `cov` raised, in every direction where it is smaller, to `floor`."""
+    cov = 0.5 * (cov + cov.T)
+    d = 0.5 * (floor + floor.T) - cov
+    lam, vec = np.linalg.eigh(d)
+    out = cov + (vec * np.maximum(lam, 0.0)) @ vec.T
+    return 0.5 * (out + out.T)
+
+
 def report_fits(method: str, codes, groups, p, hint: str):
     """The solver outcome (`jaxcal.solver.report`) of the anchors that get a fit (at least `p.min_ranges`
     ranges), with its one warning line naming `method` and `hint` when a fit did not converge."""
@@ -237,6 +251,7 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None) -> Result:
         unobservable_height=[ids[a] for a in np.flatnonzero(flat)],
         mirror_ambiguous=[ids[a] for a in np.flatnonzero(sides.ambiguous)],
         mirror_moved=[ids[a] for a in np.flatnonzero(sides.moved)],
+        mirror_widened=[ids[a] for a in np.flatnonzero(sides.widened)],
         mirror_z={ids[a]: round(float(sides.z[a]), 3) for a in np.flatnonzero(sides.checked)},
     )
     params = as_dict(p)

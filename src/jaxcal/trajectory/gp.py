@@ -160,6 +160,11 @@ class GPParams(TrajectoryParams):
             length scale at most `max_length` times the radius of the training inputs about their
             centroid, signal variance at least `min_signal` times the variance of the `nls` residuals
             (max_length = 0: no bounds).
+        bound_clusters: `mean=anchor` only: the `nls` covariance that weighs the `nls` answer in `fuse` and
+            sizes `max_shift_sigma`: the cluster jackknife over this many stretches (0: the model
+            covariance s^2 (J^T W J)^-1; -1: the covariance `nls` reports, over `cov_clusters` and
+            `n_clusters` stretches). Either way the covariance is at least the one `nls` reports before the
+            mirror check's profile (which then widens each method's about its own estimate).
         block, max_ranges: `mean=anchor` only: the GP's covariance is block-diagonal over blocks
             of `block` consecutive ranges, on at most `max_ranges` ranges per anchor (evenly thinned
             in time); `block=0` (default): one dense GP on the stratified `n_train` subsample.
@@ -190,6 +195,7 @@ class GPParams(TrajectoryParams):
     min_signal: float = 1e-4
     block: int = 0
     max_ranges: int = 4096
+    bound_clusters: int = 0
 
 
 def fit_hyper(x, y, mask, init: Hyper, nu: float = 1.5, jitter: float = 1e-6, max_steps: int = 200):

@@ -26,6 +26,17 @@ a third of the anchors, height errors of 2-5 m with predicted sd of 0.05-0.3 m).
    ranges cannot tell the sides apart: the height is left NaN by `finish` and the horizontal covariance
    is widened to the second moment of the two optima about the estimate (+ d d^T / 2, d the horizontal
    shift between them).
+4. The profile across the plane (`mirror_profile` fits, 0 = off): the anchor's distance u from the plane is
+   fixed at each of `mirror_profile` values spread over [-U, U] (U = |u| of the estimate + max(1 m, 2 sd
+   along the normal)), the rest refitted, and each fit compared with the estimate's as in step 2. Near the
+   plane the ranges hardly depend on u (their derivative is u / r), the cost is flat and not quadratic
+   there, and the curvature-based covariance misses the height and the horizontal shift that goes with it
+   (development campaigns, seeds 200-209: anchors 0.8-0.9 m above the path fitted at the plane, 0.5 m
+   off horizontally for 0.07-0.3 m predicted, none of them with a second optimum for step 1 to find).
+   Every profile fit with z <= `mirror_z` widens the covariance so that its displacement d from the
+   estimate lies within max(z, 1) standard deviations (C >= d d^T / max(z, 1)^2); one on the other side
+   of the plane, more than `mirror_min_sep_m` from the estimate, leaves the height NaN as in step 3. A
+   planar path (`is_planar`: no side test) gets the profile on its conventional side (`side`) only.
 
 Imports `nls` (for its covariance); `common.finish` imports this module inside the function.
 """
@@ -41,7 +52,7 @@ import numpy as np
 import optimistix as optx
 
 from jaxcal import solver as S
-from jaxcal.trajectory.common import is_planar
+from jaxcal.trajectory.common import is_planar, widen_covariance
 from jaxcal.trajectory.nls import irls_covariance
 
 __all__ = ["SideCheck", "local_plane", "compare_sides"]
@@ -57,6 +68,7 @@ class SideCheck(NamedTuple):
         z: (A,) cost difference (mirror - estimate) over its cluster-robust sd (NaN where not checked).
         other: (A, 3) the optimum on the other side [m] (the replaced estimate where `moved`).
         position: (A, 3), covariance: (A, 3, 3): the estimates after the check (heights not yet NaN).
+        widened: (A,) the profile across the plane (step 4) widened the covariance.
     """
 
     checked: np.ndarray
@@ -66,6 +78,7 @@ class SideCheck(NamedTuple):
     other: np.ndarray
     position: np.ndarray
     covariance: np.ndarray
+    widened: np.ndarray
 
 
 def _dist(pos, a):
@@ -91,17 +104,21 @@ def local_plane(pos, rng, mask):
     return centre, n * jnp.where(n[2] < 0, -1.0, 1.0)
 
 
+def _cauchy_residual(r, c, mask):
+    """Residuals whose squares are the Cauchy loss of r at scale c: r sqrt(log(1 + u) / u), u = (r/c)^2
+    (differentiable at r = 0); 0 where not `mask`."""
+    u = (r / c) ** 2
+    small = u < 1e-6
+    us = jnp.where(small, 1.0, u)
+    g = jnp.where(small, 1.0 - 0.5 * u, jnp.log1p(us) / us)
+    return jnp.where(mask, r * jnp.sqrt(g), 0.0)
+
+
 def _cauchy_fit(pos, rng, mask, x0, c, max_steps: int):
-    """Levenberg-Marquardt on residuals whose squares are the Cauchy loss: r sqrt(log(1 + u) / u), u = (r/c)^2
-    (written so that it stays differentiable at r = 0). Returns ((4,) anchor and bias, outcome code)."""
+    """Levenberg-Marquardt on `_cauchy_residual`. Returns ((4,) anchor and bias, outcome code)."""
 
     def residual(x, _):
-        r = _dist(pos, x[:3]) + x[3] - rng
-        u = (r / c) ** 2
-        small = u < 1e-6
-        us = jnp.where(small, 1.0, u)
-        g = jnp.where(small, 1.0 - 0.5 * u, jnp.log1p(us) / us)
-        return jnp.where(mask, r * jnp.sqrt(g), 0.0)
+        return _cauchy_residual(_dist(pos, x[:3]) + x[3] - rng, c, mask)
 
     sol = optx.least_squares(
         residual, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10), x0, max_steps=max_steps, throw=False
@@ -119,21 +136,60 @@ def _compare_one(pos, rng, mask, est, n_clusters: int, min_scale: float, max_ste
     x1, k1 = _cauchy_fit(pos, rng, mask, jnp.concatenate([mirror, x0[3:]]), c, max_steps)
     res0 = _dist(pos, x0[:3]) + x0[3] - rng
     res1 = _dist(pos, x1[:3]) + x1[3] - rng
-    diff = jnp.where(mask, _nll(res1, c) - _nll(res0, c), 0.0)
-    n_valid = jnp.maximum(jnp.sum(mask), 1)
-    cluster = jnp.where(mask, ((jnp.cumsum(mask) - 1) * n_clusters) // n_valid, n_clusters)
-    d_g = jax.ops.segment_sum(diff, cluster, n_clusters + 1)[:n_clusters]
-    d = jnp.sum(d_g)
-    var = n_clusters / (n_clusters - 1.0) * jnp.sum((d_g - d / n_clusters) ** 2)
-    # + 1 nat^2: an exact mirror (a path in one plane) gives d and var of rounding size, whose ratio means
-    # nothing; a log-likelihood difference below a few nats is no evidence either way.
-    z = d / jnp.sqrt(var + 1.0)
+    # + 1 nat^2 in the variance (`_vuong_z`): an exact mirror (a path in one plane) gives a difference and a
+    # variance of rounding size, whose ratio means nothing; a difference below a few nats is no evidence.
+    z = _vuong_z(res1, res0, mask, c, n_clusters)
     # nls's covariance at the other optimum (used where it replaces the estimate).
     w1 = jnp.where(mask, 1.0 / (1.0 + (res1 / c) ** 2), 0.0)
     sw1 = jnp.sqrt(w1)
     jac = jax.jacfwd(lambda x: sw1 * (_dist(pos, x[:3]) + x[3] - rng))(x1)
     cov1 = irls_covariance(jac, sw1 * res1, w1, mask, (cov_clusters, n_clusters))[:3, :3]
-    return x0[:3], x1[:3], jnp.maximum(k0, k1), z, cov1
+    return x0[:3], x1[:3], jnp.maximum(k0, k1), z, cov1, x0, c, centre, n
+
+
+def _vuong_z(res, res0, mask, c, n_clusters: int):
+    """Cauchy log-likelihood difference of residuals `res` against `res0` over its cluster-robust sd (step 2)."""
+    diff = jnp.where(mask, _nll(res, c) - _nll(res0, c), 0.0)
+    n_valid = jnp.maximum(jnp.sum(mask), 1)
+    cluster = jnp.where(mask, ((jnp.cumsum(mask) - 1) * n_clusters) // n_valid, n_clusters)
+    d_g = jax.ops.segment_sum(diff, cluster, n_clusters + 1)[:n_clusters]
+    d = jnp.sum(d_g)
+    var = n_clusters / (n_clusters - 1.0) * jnp.sum((d_g - d / n_clusters) ** 2)
+    return d / jnp.sqrt(var + 1.0)
+
+
+def _profile_one(pos, rng, mask, x0, c, centre, n, sd_n, n_clusters: int, max_steps: int, n_grid: int):
+    """Profile of the fit across the path's plane (one anchor): the anchor's distance from the plane
+    fixed at each of `n_grid` values u_k in [-U, U], U = |u0| + max(1 m, 2 x sd_n) (u0 that of the fit
+    x0 = (anchor, bias), sd_n its standard deviation along the normal n), the in-plane position and the
+    bias refitted (Cauchy loss at the scale c). Returns ((K, 3) profile anchors, (K,) z of each against x0
+    (`_vuong_z`), (K,) outcome codes)."""
+    ref = jnp.where(jnp.abs(n[0]) < 0.9, jnp.array([1.0, 0.0, 0.0]), jnp.array([0.0, 1.0, 0.0]))
+    e1 = ref - jnp.dot(ref, n) * n
+    e1 = e1 / jnp.linalg.norm(e1)
+    e2 = jnp.cross(n, e1)
+    rel = x0[:3] - centre
+    u0 = jnp.dot(rel, n)
+    span = jnp.abs(u0) + jnp.maximum(1.0, 2.0 * jnp.where(jnp.isfinite(sd_n), sd_n, 1.0))
+    span = jnp.minimum(span, jnp.max(jnp.where(mask, rng, 0.0)))
+    res0 = _dist(pos, x0[:3]) + x0[3] - rng
+
+    def at(u):
+        def to_anchor(y):
+            return centre + u * n + y[0] * e1 + y[1] * e2
+
+        def residual(y, _):
+            return _cauchy_residual(_dist(pos, to_anchor(y)) + y[2] - rng, c, mask)
+
+        y0 = jnp.stack([jnp.dot(rel, e1), jnp.dot(rel, e2), x0[3]])
+        sol = optx.least_squares(
+            residual, optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8), y0, max_steps=max_steps, throw=False
+        )
+        a = to_anchor(sol.value)
+        res = _dist(pos, a) + sol.value[2] - rng
+        return a, _vuong_z(res, res0, mask, c, n_clusters), S.outcome(sol)
+
+    return jax.vmap(at)(jnp.linspace(-1.0, 1.0, n_grid) * span)
 
 
 @eqx.filter_jit
@@ -141,6 +197,11 @@ def _compare_all(pos, rng, mask, est, n_clusters: int, min_scale: float, max_ste
     return jax.vmap(lambda p, r, m, e: _compare_one(p, r, m, e, n_clusters, min_scale, max_steps, cov_clusters))(
         pos, rng, mask, est
     )
+
+
+@eqx.filter_jit
+def _profile_all(pos, rng, mask, x0, c, centre, n, sd_n, n_clusters: int, max_steps: int, n_grid: int):
+    return jax.vmap(lambda *a: _profile_one(*a, n_clusters, max_steps, n_grid))(pos, rng, mask, x0, c, centre, n, sd_n)
 
 
 def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
@@ -165,6 +226,7 @@ def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
         other=np.full((a_n, 3), np.nan),
         position=np.array(est, dtype=float),
         covariance=np.array(cov, dtype=float),
+        widened=np.zeros(a_n, bool),
     )
     mask = np.asarray(groups.mask)
     pos = np.asarray(groups.position)
@@ -174,14 +236,16 @@ def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
         if q.shape[0]:
             hstd = float(np.sqrt(np.mean(np.sum((q[:, :2] - q[:, :2].mean(axis=0)) ** 2, axis=1))))
             planar[a] = bool(is_planar(float(np.std(q[:, 2])), hstd, p.planar_tol_m, p.planar_ratio))
-    todo = np.flatnonzero(np.isfinite(est).all(axis=1) & (mask.sum(axis=1) >= max(p.min_ranges, 4)) & ~planar)
+    # planar paths: no side test (the side is `p.side`), but the profile (on that side) sizes the covariance
+    todo = np.flatnonzero(np.isfinite(est).all(axis=1) & (mask.sum(axis=1) >= max(p.min_ranges, 4)))
     if p.mirror_z <= 0 or todo.size == 0:
         return out
-    x0, x1, code, z, cov1 = (
+    rng = np.asarray(groups.range)
+    x0, x1, code, z, cov1, x0b, scale, centre, normal = (
         np.asarray(v)
         for v in _compare_all(
             jnp.asarray(pos[todo]),
-            jnp.asarray(np.asarray(groups.range)[todo]),
+            jnp.asarray(rng[todo]),
             jnp.asarray(mask[todo]),
             jnp.asarray(est[todo]),
             int(getattr(p, "n_clusters", 16)),
@@ -192,7 +256,7 @@ def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
     )
     distinct = (code == S.CONVERGED) & (np.linalg.norm(x1 - x0, axis=1) > p.mirror_min_sep_m) & np.isfinite(z)
     for k, a in enumerate(todo):
-        if not distinct[k]:
+        if not distinct[k] or planar[a]:
             continue
         out.checked[a], out.z[a], out.other[a] = True, z[k], x1[k]
         if z[k] < -p.mirror_z:
@@ -204,4 +268,47 @@ def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
             out.ambiguous[a] = True
             dh = x1[k, :2] - est[a, :2]
             out.covariance[a, :2, :2] += 0.5 * np.outer(dh, dh)
+    if p.mirror_profile > 1:
+        _apply_profile(out, todo, planar[todo], (pos, rng, mask), (x0b, scale, centre, normal), p)
     return out
+
+
+def _apply_profile(out: SideCheck, todo, planar, data, fit, p) -> None:
+    """Step 4 (module doc), in place on `out`: the profile across the plane of every anchor in `todo` that was
+    not moved; the profile fits within `mirror_z` widen the covariance, and one on the other side of the
+    plane, more than `mirror_min_sep_m` from the estimate, leaves the height NaN (`ambiguous`). A planar
+    path (`planar`, (len(todo),)) has its side by convention (`p.side`): only that side's fits count."""
+    pos, rng, mask = data
+    x0b, scale, centre, normal = fit
+    cov = out.covariance[todo]
+    sd_n = np.sqrt(np.maximum(np.einsum("ai,aij,aj->a", normal, np.nan_to_num(cov), normal), 0.0))
+    pts, zk, codes = (
+        np.asarray(v)
+        for v in _profile_all(
+            *(jnp.asarray(v) for v in (pos[todo], rng[todo], mask[todo], x0b, scale, centre, normal, sd_n)),
+            int(getattr(p, "n_clusters", 16)),
+            100,
+            int(p.mirror_profile),
+        )
+    )
+    for k, a in enumerate(todo):
+        if out.moved[a]:
+            continue
+        keep = (codes[k] == S.CONVERGED) & np.isfinite(zk[k]) & (zk[k] <= p.mirror_z)
+        u_est = float((out.position[a] - centre[k]) @ normal[k])
+        if planar[k]:
+            keep &= (pts[k] - centre[k]) @ normal[k] * p.side >= min(0.0, u_est * p.side)
+        if not keep.any():
+            continue
+        d = pts[k][keep] - out.position[a]
+        u = (pts[k][keep] - centre[k]) @ normal[k]
+        other = (np.sign(u) != np.sign(u_est)) & (np.abs(u - u_est) > p.mirror_min_sep_m)
+        for dk, zz in zip(d, zk[k][keep], strict=True):
+            floor = np.outer(dk, dk) / max(float(zz), 1.0) ** 2
+            out.covariance[a] = widen_covariance(out.covariance[a], floor)
+        out.widened[a] = True
+        if other.any() and not out.ambiguous[a] and not planar[k]:
+            out.ambiguous[a] = True
+            out.other[a] = pts[k][keep][other][np.argmin(zk[k][keep][other])]
+            out.z[a] = float(np.min(zk[k][keep][other]))
+            out.checked[a] = True

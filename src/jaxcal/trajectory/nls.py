@@ -32,7 +32,15 @@ from jaxcal.precision import in_float64
 from jaxcal.trajectory.common import TrajectoryParams, finish, multilaterate, report_fits
 from jaxcal.trajectory.poses import prepare_poses
 
-__all__ = ["NLSParams", "solve_anchor", "irls_covariance", "robust_covariance", "calibrate"]
+__all__ = [
+    "NLSParams",
+    "solve_anchor",
+    "covariance_at",
+    "covariances_at",
+    "irls_covariance",
+    "robust_covariance",
+    "calibrate",
+]
 
 
 class NLSParams(TrajectoryParams):
@@ -115,14 +123,37 @@ def solve_anchor(pos, rng, mask, init, p: NLSParams):
         res = _dist(pos, x[:3]) + use_bias * x[3] - rng
         return (x, _weights(res, mask, p.loss, p.loss_scale_m, p.min_scale_m)), S.outcome(sol)
 
-    (x, w), codes = jax.lax.scan(irls_round, (x, w), None, length=p.n_irls)
-    # Covariance from the Jacobian of the weighted residuals at the solution.
+    (x, _), codes = jax.lax.scan(irls_round, (x, w), None, length=p.n_irls)
+    cov = covariance_at(pos, rng, mask, x, p, (p.cov_clusters, p.n_clusters))
+    return x[:3], cov, x[3] * use_bias, codes[-1]
+
+
+def covariance_at(pos, rng, mask, x, p: NLSParams, n_clusters: tuple[int, ...]):
+    """The 3 x 3 position block of `irls_covariance` at the fit x = (anchor, bias) (4,) of one anchor, with
+    the IRLS weights of its residuals (the weights of `solve_anchor`'s last round).
+
+    Args:
+        pos: (n, 3) [m]. rng: (n,) [m]. mask: (n,) valid, in time order. x: (4,) anchor [m] and bias [m].
+        p: parameters (static; loss, scales, bias). n_clusters: the jackknifes' stretch counts (static;
+            () = the model covariance s^2 (J^T W J)^-1 alone).
+    """
+    use_bias = 1.0 if p.bias else 0.0
+
+    def residual(x, sw):
+        return sw * (_dist(pos, x[:3]) + use_bias * x[3] - rng)
+
+    w = _weights(residual(x, 1.0), mask, p.loss, p.loss_scale_m, p.min_scale_m)
     sw = jnp.sqrt(w)
     jac = jax.jacfwd(residual)(x, sw)
     if not p.bias:
         jac = jac[:, :3]
-    cov = irls_covariance(jac, residual(x, sw), w, mask, (p.cov_clusters, p.n_clusters))
-    return x[:3], cov[:3, :3], x[3] * use_bias, codes[-1]
+    return irls_covariance(jac, residual(x, sw), w, mask, n_clusters)[:3, :3]
+
+
+@eqx.filter_jit
+def covariances_at(pos, rng, mask, x, p: NLSParams, n_clusters: tuple[int, ...]):
+    """`covariance_at` for every anchor (vmap): pos (A, n, 3), rng and mask (A, n), x (A, 4); -> (A, 3, 3)."""
+    return jax.vmap(lambda ps, r, m, xa: covariance_at(ps, r, m, xa, p, n_clusters))(pos, rng, mask, x)
 
 
 def irls_covariance(jac_w, res_w, w, mask, n_clusters: int | tuple[int, ...]):
