@@ -14,13 +14,10 @@ Objectives (over the tuning data, by default the whole dataset):
   configuration frame, each position the tempered eq. (13) estimate of `soft_estimates` (a grid
   posterior collapses into one cell, where eq. 13 itself is piecewise constant: zero gradient).
 - `evidence` (the default; no ground truth): cross-validation over pairs. The pairs between
-  non-anchor nodes are dealt into `GRADIENT_FOLDS` (2) folds (`tune_eval.pair_folds`; the guard
-  uses `tune_eval.HELDOUT_FOLDS`, 4, which rank better but would double the gradient phase's cost;
-  with `tail` the gradient uses the guard's folds, whose runs it starts from); per
-  fold the filter runs without that fold's ranges, and the loss is the mean over the fold's pairs of
-  `sqrt(r^2 + 0.05^2)`, `r = t_ij - |x_i - x_j|` (the pair's target, a low quantile of its ranges,
-  `tune_eval.range_targets`, against the distance of the final tempered estimates, as in `truth`);
-  the folds' losses are averaged [m].
+  non-anchor nodes are dealt into two folds (`tune_eval.pair_folds`); per fold the filter runs
+  without that fold's ranges, and the loss is the mean over the fold's pairs of
+  `sqrt(r^2 + 0.05^2)`, `r = median_k z_ij - |x_i - x_j|` (the pair's median range against the
+  distance of the final tempered estimates, as in `truth`); the folds' losses are averaged [m].
   A node placed wrongly mispredicts the ranges it was not fitted to. The hard counterpart that the
   guard compares is `tune_eval.heldout_range_error`. Datasets with fewer than 5 nodes have no pair
   to hold out: `evidence` then falls back to `nlpl` (and says so in `TuneResult.settings`).
@@ -51,6 +48,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from collections.abc import Callable
 
 import equinox as eqx
@@ -95,7 +93,6 @@ __all__ = [
 
 OBJECTIVES = ("evidence", "truth", "nlpl")
 HELDOUT_EPS_M = 0.05  # smooths |r| at 0 (gradient) in the evidence loss
-GRADIENT_FOLDS = 2  # held-out folds of the evidence gradient phase (module docstring)
 TUNED = ("sigma_r", "sigma_v", "tau")
 # tuned as well when range_model="mixture" (theta entries 3 and 4)
 TUNED_MIXTURE = ("nlos_weight", "nlos_mean_m")
@@ -150,8 +147,8 @@ def make_problem(
         segment: epochs per checkpointed segment of the scan (None: `segment_length(epochs)`).
         tail_from, states: differentiate only epochs `tail_from:` of the dataset, from these
             filter states before epoch `tail_from` (one per fold for evidence, in `pair_folds`'
-            order, their number the folds', else one; e.g. `tune_eval.heldout_split`'s); float
-            arrays are cast to the problem's dtype. The evidence targets are the whole dataset's.
+            order, else one; e.g. `tune_eval.heldout_split`'s); float arrays are cast to the
+            problem's dtype. The evidence targets are the whole dataset's.
 
     Returns:
         (Problem, order): `order[k]` is the dataset index of filter node k.
@@ -168,12 +165,14 @@ def make_problem(
         raise JaxcalError(f"{dataset.name}: objective 'truth' needs ground truth (use --objective evidence)")
     folds = targets = None
     if kind == "evidence":
-        fl = tune_eval.pair_folds(dataset.n_nodes, len(states) if tail_from and states else GRADIENT_FOLDS)
+        fl = tune_eval.pair_folds(dataset.n_nodes)
         if not fl:
             kind = "nlpl"  # fewer than 5 nodes: no pair to hold out
         else:
             folds = jnp.asarray(np.stack(fl))
-            targets = jnp.asarray(tune_eval.range_targets(inp.z), ftype)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # pairs never measured: NaN
+                targets = jnp.asarray(np.nanmedian(np.asarray(inp.z, np.float64), axis=0), ftype)
     state = None
     if tail_from:
         if states is None or len(states) != (len(folds) if folds is not None else 1):

@@ -11,29 +11,18 @@ are better here), and the tuning benchmarks rank parameter sets with them.
   predictive likelihood of the ranges, nats per range factor).
 - `heldout_range_error`: a no-truth score by cross-validation over pairs. The pairs between
   non-anchor nodes (filter order >= 3, so a1 and a2 keep their references of eq. 5-6) are split
-  into `n_folds` folds (`HELDOUT_FOLDS`, 4); per fold the filter runs without that fold's ranges and
-  the held-out pairs' distances are predicted from the estimates, `|x_i - x_j|`. Each pair's target
-  is a low quantile of its ranges over the recording (`range_targets`: `TARGET_QUANTILE`, the 10th
-  percentile). Score: per held-out pair the median over epochs of `|target - |x_i - x_j||`,
-  averaged over pairs and folds [m]. Lower is better. A node placed wrongly (mirrored, or pulled by
-  an outlier ring) mispredicts the pairs it was not fitted to; the filter's own predictive
-  likelihood only sees ranges it then also conditions on.
-
-  Why a low quantile, and why four folds (docs/benchmarks/tuning.md, section 1): UWB range errors
-  are one-sided (LOS bias ~0.2 m, NLOS excess, exponential tails, gross outliers are all positive),
-  and the nodes are static, so a pair's low quantile is its least biased distance figure. Scored
-  against each range (`|z_k - d_k|`, the earlier score), a pair whose ranges all carry an NLOS excess
-  b > |error| gives `b + (true d - d)`: it rewards estimates that stretch toward the excess, which a
-  wide sigma_r does. With two folds each fold run lost half the inner pairs (a quarter of the ranges
-  of a 12-node mesh), a sparser network whose best parameters differ from the full run's: even the
-  true distances of the held-out pairs ranked parameter sets unlike the full run's RMSE.
+  into `n_folds` folds; per fold the filter runs without that fold's ranges and the held-out ranges
+  are predicted from the estimates, `|x_i - x_j|`. Score: per held-out pair the median over epochs
+  of `|z - |x_i - x_j||` (a median, so the NLOS outliers of a pair do not dominate), averaged over
+  pairs and folds [m]. Lower is better. A node placed wrongly (mirrored, or pulled by an outlier
+  ring) mispredicts the ranges it was not fitted to; the filter's own predictive likelihood only
+  sees ranges it then also conditions on.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import warnings
 
 import jax.numpy as jnp
 import numpy as np
@@ -52,13 +41,7 @@ __all__ = [
     "heldout_split",
     "advance",
     "heldout_range_error",
-    "range_targets",
-    "HELDOUT_FOLDS",
-    "TARGET_QUANTILE",
 ]
-
-HELDOUT_FOLDS = 4  # folds of the held-out pairs (module docstring)
-TARGET_QUANTILE = 0.1  # each pair's target: this quantile of its ranges over the recording
 
 
 def _params(params) -> pgp.PGPParams:
@@ -91,7 +74,7 @@ def hard_metrics(dataset: MeshDataset, params, config: str | None) -> dict[str, 
     }
 
 
-def pair_folds(n_nodes: int, n_folds: int = HELDOUT_FOLDS, seed: int = 0) -> list[np.ndarray]:
+def pair_folds(n_nodes: int, n_folds: int = 2, seed: int = 0) -> list[np.ndarray]:
     """Held-out pair masks (N, N) bool in filter order: the pairs among nodes >= 3, shuffled with
     `seed` and dealt into `n_folds` folds (every pair in exactly one fold). Empty when N < 5."""
     pairs = [(i, j) for i in range(3, n_nodes) for j in range(i + 1, n_nodes)]
@@ -109,10 +92,9 @@ def pair_folds(n_nodes: int, n_folds: int = HELDOUT_FOLDS, seed: int = 0) -> lis
 
 
 def heldout_pair_errors(
-    dataset: MeshDataset, params, config: str | None, n_folds: int = HELDOUT_FOLDS, seed: int = 0
+    dataset: MeshDataset, params, config: str | None, n_folds: int = 2, seed: int = 0
 ) -> np.ndarray:
-    """Per held-out pair, the median over epochs of |target - distance of the estimates| [m]
-    (target: `range_targets`), in
+    """Per held-out pair, the median over epochs of |range - distance of the estimates| [m], in
     the fixed order of `pair_folds` (fold by fold); NaN where the pair has no range or estimate.
     The same order for any parameters, so two runs compare pair by pair (the guard's test)."""
     p = _params(params)
@@ -134,7 +116,7 @@ def advance(cfg, prm, inp, st, start: int, stop: int | None = None):
 
 
 def heldout_split(
-    dataset: MeshDataset, params, config: str | None, split: int, n_folds: int = HELDOUT_FOLDS, seed: int = 0
+    dataset: MeshDataset, params, config: str | None, split: int, n_folds: int = 2, seed: int = 0
 ) -> tuple[np.ndarray, list]:
     """`heldout_pair_errors`, each fold's run taken in two parts at epoch `split` (the same run),
     and each fold's filter state before epoch `split` (where `tune`'s gradient phase starts).
@@ -166,7 +148,7 @@ def fold_pair_errors(dataset: MeshDataset, mask, estimate, order) -> np.ndarray:
     est = np.asarray(estimate, dtype=np.float64)
     ii, jj = np.nonzero(np.triu(np.asarray(mask)))
     d = np.linalg.norm(est[:, ii] - est[:, jj], axis=-1)  # (K, P)
-    e = np.abs(range_targets(z)[ii, jj][None] - d)
+    e = np.abs(z[:, ii, jj] - d)
     scores = []
     for c in range(e.shape[1]):
         col = e[:, c][np.isfinite(e[:, c])]
@@ -174,18 +156,7 @@ def fold_pair_errors(dataset: MeshDataset, mask, estimate, order) -> np.ndarray:
     return np.asarray(scores, dtype=np.float64)
 
 
-def range_targets(z) -> np.ndarray:
-    """(N, N) each pair's distance target [m]: the `TARGET_QUANTILE` quantile over epochs of its
-    ranges `z` (K, N, N) (module docstring: range errors are one-sided); NaN for a pair never
-    measured."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # pairs never measured: NaN
-        return np.nanquantile(np.asarray(z, dtype=np.float64), TARGET_QUANTILE, axis=0)
-
-
-def heldout_range_error(
-    dataset: MeshDataset, params, config: str | None, n_folds: int = HELDOUT_FOLDS, seed: int = 0
-) -> float:
+def heldout_range_error(dataset: MeshDataset, params, config: str | None, n_folds: int = 2, seed: int = 0) -> float:
     """Cross-validated range error over pairs [m] (module docstring): the mean of
     `heldout_pair_errors`; NaN when no held-out pair has both estimates and a range."""
     return mean_pair_error(heldout_pair_errors(dataset, params, config, n_folds, seed))

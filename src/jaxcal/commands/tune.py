@@ -13,9 +13,8 @@ def add_arguments(p) -> None:
         "--objective",
         default="evidence",
         choices=["evidence", "truth", "nlpl"],
-        help="evidence (default, no truth needed): predict the distances of pairs held out from the "
-        "filter (cross-validation over pairs, each against its 10th-percentile range); truth: RMSE "
-        "against the ground truth; nlpl: the "
+        help="evidence (default, no truth needed): predict the ranges of pairs held out from the "
+        "filter (cross-validation over pairs); truth: RMSE against the ground truth; nlpl: the "
         "filter's own predictive likelihood of the ranges (ranks parameters poorly)",
     )
     p.add_argument(
