@@ -1210,18 +1210,7 @@ def run_pgp(
     if b != a:  # proxy frame: every epoch moved into the configuration's frame by its a0, a1, a2
         final, cov, est = _to_config_frame(final, cov, est, a)
         loc_any = np.isfinite(est).all(axis=2).any(axis=0)
-    res = Result(
-        ids=dataset.node_ids,
-        position=final,
-        method=mode,
-        dataset=dataset.name,
-        frame=f"anchors:{a[0]},{a[1]},{a[2]}",
-        params=as_dict(params),
-        covariance=cov,
-        track_time=np.asarray(dataset.time, dtype=np.float64),
-        track_position=est,
-        software=_software(),
-    )
+    res = _result(dataset, params, mode, a, final, cov, est)
     info = PGPInfo(
         axis_m=np.asarray(cfg.grid.axis(np.float64)),
         posterior=np.exp(np.asarray(st.logpost, dtype=np.float64))[inv],
@@ -1233,6 +1222,22 @@ def run_pgp(
         frame=f"anchors:{b[0]},{b[1]},{b[2]}",
     )
     return res, info
+
+
+def _result(dataset: MeshDataset, params: PGPParams, method: str, a, final, cov, est) -> Result:
+    """The `Result` of a filter run: final positions and covariances, the track, in the frame a0, a1, a2 = `a`."""
+    return Result(
+        ids=dataset.node_ids,
+        position=final,
+        method=method,
+        dataset=dataset.name,
+        frame=f"anchors:{a[0]},{a[1]},{a[2]}",
+        params=as_dict(params),
+        covariance=cov,
+        track_time=np.asarray(dataset.time, dtype=np.float64),
+        track_position=est,
+        software=_software(),
+    )
 
 
 def _local_setup(dataset: MeshDataset, params: PGPParams, anchors, mode: str, snapshots: bool):
@@ -1295,18 +1300,7 @@ def _run_local(dataset: MeshDataset, params: PGPParams, a, b, local, progress, p
             len(never),
             ", ".join(never[:10]) + (" ..." if len(never) > 10 else ""),
         )
-    res = Result(
-        ids=dataset.node_ids,
-        position=final,
-        method="pgp",
-        dataset=dataset.name,
-        frame=f"anchors:{a[0]},{a[1]},{a[2]}",
-        params=as_dict(params),
-        covariance=cov,
-        track_time=np.asarray(dataset.time, dtype=np.float64),
-        track_position=est,
-        software=_software(),
-    )
+    res = _result(dataset, params, "pgp", a, final, cov, est)
     post = L.scatter(cfg, st)[inv] if posterior else np.zeros((0, 0, 0))
     info = PGPInfo(
         axis_m=np.asarray(lattice.axis(np.float64)),
