@@ -210,3 +210,15 @@ def test_covariance_at_the_fit_is_nls_covariance_and_its_parts_are_narrower():
         for part in ((16,), (4,)):
             jack = np.asarray(nls.covariances_at(*args, part))[a]
             assert np.linalg.eigvalsh(jack - model[a]).min() > -1e-12 * np.trace(model[a])
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [{"mirror_profile": -3}, {"mirror_z": -1.0}, {"side": 0.0}, {"min_ranges": 0}, {"max_gap_s": float("nan")}],
+)
+def test_trajectory_params_refuse_values_that_mean_nothing(bad):
+    from jaxcal.errors import JaxcalError
+
+    with pytest.raises(JaxcalError, match=f"parameter {next(iter(bad))}: must be"):
+        nls.NLSParams(**bad)
+    nls.NLSParams(mirror_z=0.0, mirror_profile=0)  # the documented "off" values stay valid

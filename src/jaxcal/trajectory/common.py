@@ -26,6 +26,7 @@ from jaxtyping import Array, Bool, Float
 
 from jaxcal import solver
 from jaxcal.data import Result
+from jaxcal.errors import JaxcalError
 from jaxcal.params import as_dict
 
 __all__ = [
@@ -76,6 +77,25 @@ class TrajectoryParams(eqx.Module):
     time_offset_s: float = 0.0
     estimate_offset: bool = False
     max_offset_s: float = 1.0
+
+    def __check_init__(self):
+        rules = {  # name -> (holds, what it must be); NaN fails every comparison
+            "min_ranges": (self.min_ranges >= 1, "an integer >= 1"),
+            "max_height_dop": (self.max_height_dop > 0, "a number > 0"),
+            "planar_tol_m": (self.planar_tol_m >= 0, "a number >= 0"),
+            "planar_ratio": (self.planar_ratio >= 0, "a number >= 0"),
+            "side": (self.side in (1.0, -1.0), "1 or -1"),
+            "mirror_z": (self.mirror_z >= 0, "a number >= 0"),
+            "mirror_min_sep_m": (self.mirror_min_sep_m >= 0, "a number >= 0"),
+            "mirror_profile": (self.mirror_profile >= 0, "an integer >= 0 (0 or 1: no profile)"),
+            "order": (self.order >= 1, "an integer >= 1"),
+            "knot_dt_s": (self.knot_dt_s >= 0, "a number >= 0 (0 = automatic)"),
+            "max_gap_s": (self.max_gap_s >= 0, "a number >= 0 (0 = automatic)"),
+            "max_offset_s": (self.max_offset_s >= 0, "a number >= 0"),
+        }
+        for name, (holds, want) in rules.items():
+            if not holds:
+                raise JaxcalError(f"parameter {name}: must be {want}, got {getattr(self, name)}")
 
 
 def _solve(a_mat, b_vec, mask):
