@@ -101,3 +101,35 @@ def test_negative_pose_error_is_refused(bad):
 
     with pytest.raises(JaxcalError, match=f"parameter {next(iter(bad))}: must be"):
         nls.NLSParams(**bad)
+
+
+def test_cli_stated_pose_error_then_evaluate_prints_horizontal_and_vertical_apart(tmp_path):
+    from conftest import run_cli
+    from jaxcal.io import hdf5
+
+    ds = lissajous(noise=0.05, seed=1)
+    f, out = tmp_path / "liss.h5", tmp_path / "R.h5"
+    hdf5.write(f, ds)
+    proc = run_cli("calibrate", f, "--method", "nls", "-o", out, "--set", "pose_sd_m=0.1", "--set", "pose_drift=0.01")
+    assert proc.returncode == 0, proc.stderr
+    res = hdf5.read(out)  # written, so every finite block passed the writer's symmetric-PSD check
+    assert np.isfinite(res.covariance).all() and (np.diagonal(res.covariance, axis1=1, axis2=2)[:, :2] > 0.01).all()
+    ev = run_cli("evaluate", out, "--truth", f)
+    assert ev.returncode == 0, ev.stderr
+    lines = ev.stdout.splitlines()
+    for part in ("horizontal", "vertical"):
+        line = next(x for x in lines if x.strip().startswith(part))
+        assert "predicted rms" in line and "actual" in line and "NEES per coordinate" in line and "coverage" in line
+
+
+def test_range_times_are_those_of_the_grouping_or_of_the_dataset_when_a_method_regroups():
+    from jaxcal.trajectory.pose_error import anchor_times
+    from jaxcal.trajectory.poses import AnchorRanges, prepare_poses
+
+    ds = lissajous(seed=2)
+    groups, _ = prepare_poses(ds, nls.NLSParams())
+    kept = anchor_times(ds, groups)
+    regrouped = anchor_times(ds, AnchorRanges(groups.position, groups.range, groups.mask))  # as gp passes them
+    for a in range(3):
+        np.testing.assert_array_equal(kept[a], ds.range_time[ds.range_anchor == a])
+        np.testing.assert_array_equal(regrouped[a], kept[a])
