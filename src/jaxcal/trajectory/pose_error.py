@@ -103,13 +103,14 @@ def pose_error_covariances(dataset, groups, est: np.ndarray, p, method: str) -> 
     for a in range(est.shape[0]):
         if not np.isfinite(est[a]).all() or mask[a].sum() < 4:
             continue
-        if times[a] is None:
+        ta = times[a]
+        if ta is None:
             missing.append(dataset.anchor_ids[a])
             continue
         out[a] = pose_error_covariance(
             pos[a][mask[a]],
             rng[a][mask[a]],
-            times[a],
+            ta,
             est[a],
             p.pose_sd_m,
             p.pose_drift,
