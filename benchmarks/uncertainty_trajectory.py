@@ -2,15 +2,19 @@
 
 Datasets: the real recordings in ../shared/datasets with anchor truth (hymn-torgau, hanyang-outdoor LOS and
 NLOS Trajectory_A Case_1, cuhksz-planar) and simulated campaigns (`jaxcal.sim.trajectory`, scenario
-`small` over `--sim-seeds`, odometry drift 0.02 m/sqrt(s) on odd seeds).
+`small` over `--sim-seeds`; `--family alternate` (default): odometry drift 0.02 m/sqrt(s) on odd seeds, none on
+even ones; `drift` / `clean`: drift on every seed / on none). `--stated-drift` tells the methods the drift
+(`pose_drift`, `jaxcal.trajectory.pose_error`) where there is one.
 
 Per anchor with a finite estimate: the error e (3-D; split into horizontal and vertical), the NEES
 e^T C^-1 e over the finite coordinates (an unobservable coordinate reported as NaN is left out, and
-counted), and whether the truth is inside the 95 % ellipsoid. Printed (JSON lines): one line per
-(dataset, method), then one summary line per method over the simulated campaigns.
+counted), and whether the truth is inside the 95 % ellipsoid; the same for the horizontal (x, y) and vertical
+(z) parts apart. Printed (JSON lines): one line per (dataset, method), then one summary line per method
+over the simulated campaigns.
 
 Usage:
     python benchmarks/uncertainty_trajectory.py [--methods nls,ls] [--sim-seeds 0-19 | 1,3,5] [--no-real]
+        [--family alternate|drift|clean] [--stated-drift]
 """
 
 from __future__ import annotations
@@ -73,7 +77,10 @@ def anchor_figures(res, truth) -> list[dict]:
                 dof=int(fin.sum()),
                 inside=bool(q <= chi2.ppf(0.95, int(fin.sum()))),
                 sd_m=float(np.sqrt(np.trace(cf))),
+                h_nees=float(e[:2] @ np.linalg.solve(c[:2, :2], e[:2])),
             )
+            if fin[2]:
+                row["v_nees"] = float(e[2] ** 2 / c[2, 2])
         rows.append(row)
     return rows
 
@@ -86,6 +93,9 @@ def line(label, method, rows):
         "method": method,
         "anchors": len(rows),
         "nees_per_dof": sum(r["nees"] for r in used) / dof if dof else float("nan"),
+        "h_nees_per_dof": sum(r["h_nees"] for r in used) / (2 * len(used)) if used else float("nan"),
+        "v_nees_per_dof": float(np.mean(v)) if (v := [r["v_nees"] for r in used if "v_nees" in r]) else float("nan"),
+        "outside95": sum(not r["inside"] for r in used),
         "coverage95": float(np.mean([r["inside"] for r in used])) if used else float("nan"),
         "rmse_m": float(np.sqrt(np.mean([r["error_m"] ** 2 for r in used]))) if used else float("nan"),
         "pred_rmse_m": float(np.sqrt(np.mean([r["sd_m"] ** 2 for r in used]))) if used else float("nan"),
@@ -107,6 +117,8 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", default="nls,ls")
     ap.add_argument("--sim-seeds", default="0-19")
     ap.add_argument("--no-real", action="store_true")
+    ap.add_argument("--family", choices=("alternate", "drift", "clean"), default="alternate")
+    ap.add_argument("--stated-drift", action="store_true", help="pass the campaign's drift as pose_drift")
     args = ap.parse_args(argv)
     logging.getLogger("jaxcal").setLevel(logging.ERROR)
     from jaxcal.methods import calibrate
@@ -122,9 +134,11 @@ def main(argv=None) -> int:
     seeds = [s for part in args.sim_seeds.split(",") for s in _seed_range(part)]
     sims = {m: [] for m in methods}
     for seed in seeds:
-        ds = simulate("small", seed=seed, drift=0.02 if seed % 2 else 0.0)
+        drift = {"drift": 0.02, "clean": 0.0}.get(args.family, 0.02 if seed % 2 else 0.0)
+        ds = simulate("small", seed=seed, drift=drift)
+        stated = {"pose_drift": drift} if args.stated_drift and drift > 0 else None
         for m in methods:
-            rows = anchor_figures(calibrate(ds, m), ds.anchor_truth)
+            rows = anchor_figures(calibrate(ds, m, params=stated), ds.anchor_truth)
             ln = line(f"sim-small-{seed}", m, rows)
             sims[m].append(ln)
             print(json.dumps(ln), flush=True)
@@ -139,6 +153,8 @@ def main(argv=None) -> int:
                     "coverage95_mean": float(np.mean(cov)) if cov else None,
                     "nees_dof_median": float(np.median(nees)) if nees else None,
                     "nees_dof_worst": float(np.max(nees)) if nees else None,
+                    "outside95": sum(x["outside95"] for x in sims[m]),
+                    "nan_heights": sum(x["nan_axes"] for x in sims[m]),
                 }
             ),
             flush=True,

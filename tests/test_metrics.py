@@ -294,6 +294,8 @@ def test_covariance_consistency_trajectory_horizontal_vertical_and_nan_axis():
     assert cc["nees_per_dof"] == pytest.approx((1 + 9 + 4 + 1 + 0) / 8)
     # chi2(3) 95 % = 7.81: a (NEES 10) outside, b (5) inside; c: 2 dof, NEES 0: inside
     assert cc["coverage95"] == pytest.approx(2 / 3)
+    # apart: horizontal NEES 1, 4, 0 all inside chi2(2) 95 % = 5.99; vertical 9 (outside 3.84) and 1
+    assert cc["h_coverage95"] == 1.0 and cc["v_coverage95"] == pytest.approx(0.5)
     assert cc["v_error_rmse_m"] == pytest.approx(np.sqrt((0.09 + 0.01) / 2))
 
 

@@ -340,7 +340,8 @@ def covariance_consistency(result: Result, dataset: MeshDataset | TrajectoryData
         coordinates: 1 for a covariance that is right, > 1 when it is too small), `coverage95` (share of
         rows whose truth is inside the 95 % ellipse / ellipsoid), and for 3-D results the same RMS and NEES
         for the horizontal (x, y) and vertical (z) parts: `h_error_rmse_m`, `h_predicted_rmse_m`,
-        `h_nees_per_dof`, `v_error_rmse_m`, `v_predicted_rmse_m`, `v_nees_per_dof`.
+        `h_nees_per_dof`, `h_coverage95` (the 95 % ellipse of the horizontal block alone), `v_error_rmse_m`,
+        `v_predicted_rmse_m`, `v_nees_per_dof`, `v_coverage95`.
     """
     from scipy.stats import chi2
 
@@ -371,7 +372,7 @@ def covariance_consistency(result: Result, dataset: MeshDataset | TrajectoryData
     tr: dict[str, list[float]] = {k: [] for k in parts}  # predicted squared errors (covariance traces)
     nees: dict[str, float] = dict.fromkeys(parts, 0.0)
     dof: dict[str, int] = dict.fromkeys(parts, 0)
-    inside: list[bool] = []
+    inside: dict[str, list[bool]] = {k: [] for k in parts}
     for k in range(len(result.ids)):
         e_all, c_all = result.position[k] - truth[k], np.asarray(result.covariance[k], dtype=np.float64)
         if k == a0 or not np.isfinite(truth[k]).all():
@@ -391,8 +392,7 @@ def covariance_consistency(result: Result, dataset: MeshDataset | TrajectoryData
                 q = float(e[free] @ np.linalg.lstsq(c[np.ix_(free, free)], e[free], rcond=None)[0])
                 nees[name] += q
                 dof[name] += int(free.sum())
-                if name == "":
-                    inside.append(q <= chi2.ppf(0.95, int(free.sum())))
+                inside[name].append(q <= chi2.ppf(0.95, int(free.sum())))
     if not sq[""]:
         return None
     out: dict[str, float] = {"nodes": len(sq[""])}
@@ -402,7 +402,7 @@ def covariance_consistency(result: Result, dataset: MeshDataset | TrajectoryData
         out[f"{name}error_rmse_m"] = float(np.sqrt(np.mean(sq[name])))
         out[f"{name}predicted_rmse_m"] = float(np.sqrt(np.mean(tr[name])))
         out[f"{name}nees_per_dof"] = nees[name] / dof[name] if dof[name] else float("nan")
-    out["coverage95"] = float(np.mean(inside)) if inside else float("nan")
+        out[f"{name}coverage95"] = float(np.mean(inside[name])) if inside[name] else float("nan")
     return out
 
 

@@ -69,5 +69,6 @@ def _print_consistency(result, truth, fmt) -> None:
         if f"{part}error_rmse_m" in cc:
             print(
                 f"  {label:<10}: predicted rms {fmt(cc[part + 'predicted_rmse_m'])} m, "
-                f"actual {fmt(cc[part + 'error_rmse_m'])} m, NEES per coordinate {cc[part + 'nees_per_dof']:.2f}"
+                f"actual {fmt(cc[part + 'error_rmse_m'])} m, NEES per coordinate {cc[part + 'nees_per_dof']:.2f}, "
+                f"95 % coverage {100 * cc[part + 'coverage95']:.0f} %"
             )

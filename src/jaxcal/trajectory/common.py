@@ -28,6 +28,7 @@ from jaxcal import solver
 from jaxcal.data import Result
 from jaxcal.errors import JaxcalError
 from jaxcal.params import as_dict
+from jaxcal.trajectory.pose_error import pose_error_covariances
 
 __all__ = [
     "TrajectoryParams",
@@ -59,6 +60,11 @@ class TrajectoryParams(eqx.Module):
         mirror_profile: fits across the path's plane in the mirror-image check's profile (step 4 of
             `jaxcal.trajectory.mirror`: the covariance is widened to hold those that fit within mirror_z,
             and one of them on the other side leaves the height NaN); 0 or 1: no profile.
+        pose_sd_m, pose_drift: a stated horizontal pose error (`jaxcal.trajectory.pose_error`): the standard
+            deviation [m] per axis of an offset shared by the whole path (frame, lever arm) and the intensity
+            [m / sqrt(s)] of a random-walk drift from the first pose (odometry). The ranges cannot show an
+            error that moves the tag positions together (the anchor moves with them), so it is added to
+            every anchor's covariance by linear propagation through the fit. 0 (default): poses exact.
         order, knot_dt_s, max_gap_s: pose B-spline (order 4 = cubic; 0 = automatic).
         time_offset_s, estimate_offset, max_offset_s: pose minus range clock offset [s] and its search.
     """
@@ -71,6 +77,8 @@ class TrajectoryParams(eqx.Module):
     mirror_z: float = 2.0
     mirror_min_sep_m: float = 0.25
     mirror_profile: int = 17
+    pose_sd_m: float = 0.0
+    pose_drift: float = 0.0
     order: int = 4
     knot_dt_s: float = 0.0
     max_gap_s: float = 0.0
@@ -88,6 +96,8 @@ class TrajectoryParams(eqx.Module):
             "mirror_z": (self.mirror_z >= 0, "a number >= 0"),
             "mirror_min_sep_m": (self.mirror_min_sep_m >= 0, "a number >= 0"),
             "mirror_profile": (self.mirror_profile >= 0, "an integer >= 0 (0 or 1: no profile)"),
+            "pose_sd_m": (self.pose_sd_m >= 0, "a number >= 0 [m]"),
+            "pose_drift": (self.pose_drift >= 0, "a number >= 0 [m / sqrt(s)]"),
             "order": (self.order >= 1, "an integer >= 1"),
             "knot_dt_s": (self.knot_dt_s >= 0, "a number >= 0 (0 = automatic)"),
             "max_gap_s": (self.max_gap_s >= 0, "a number >= 0 (0 = automatic)"),
@@ -219,7 +229,8 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None) -> Result:
     height (the rest kept, one warning line) for anchors whose height the path cannot observe
     (`unobservable_height`) and for anchors the ranges cannot tell from their mirror image through the
     path (`jaxcal.trajectory.mirror.compare_sides`, which also moves an anchor to the other side where that
-    fits clearly better). `solver` (a `jaxcal.solver.SolverReport`) adds `solver_status` and
+    fits clearly better). A stated pose error (`pose_sd_m`, `pose_drift`) is added to every covariance
+    first (`jaxcal.trajectory.pose_error`). `solver` (a `jaxcal.solver.SolverReport`) adds `solver_status` and
     `solver_failed` to the params."""
     from jaxcal import __version__
 
@@ -230,6 +241,8 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None) -> Result:
     bad = (count < p.min_ranges) | ~np.isfinite(est).all(axis=1) | ~np.isfinite(cov).all(axis=(1, 2))
     est[bad] = np.nan
     cov[bad] = np.nan
+    pose_cov = pose_error_covariances(dataset, groups, est, p, method)
+    cov = cov + pose_cov
     flat, zstd = unobservable_height(groups, est, p)
     if flat.any():
         est[flat, 2] = np.nan
@@ -249,6 +262,7 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None) -> Result:
 
     sides = compare_sides(groups, est, cov, p)
     est, cov = sides.position, sides.covariance
+    cov[sides.moved] += pose_cov[sides.moved]  # the other side's covariance is the fit's alone
     ids = dataset.anchor_ids
     if sides.ambiguous.any():
         amb = np.flatnonzero(sides.ambiguous)

@@ -46,11 +46,13 @@ class AnchorRanges(eqx.Module):
         position: (A, n, 3) tag positions in the world frame [m] at range time.
         range: (A, n) measured ranges [m].
         mask: (A, n) True for real entries, False for padding.
+        time: (A, n) range times [s] (0 on padding), or None where the grouping did not keep them.
     """
 
     position: Float[Array, "a n 3"]
     range: Float[Array, "a n"]
     mask: Bool[Array, "a n"]
+    time: Float[Array, "a n"] | None = None
 
 
 def quat_rotate(q: Float[Array, "... 4"], v: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
@@ -147,6 +149,7 @@ def group_by_anchor(
     n_anchors: int,
     max_per_anchor: int = 0,
     seed: int = 0,
+    time: np.ndarray | None = None,
 ) -> AnchorRanges:
     """Group valid ranges per anchor into padded arrays (host side).
 
@@ -156,6 +159,7 @@ def group_by_anchor(
         max_per_anchor: keep at most this many ranges per anchor, drawn evenly spaced in time
             (0 = all); used only to bound memory on very long recordings.
         seed: unused unless subsampling needs ties broken (kept for reproducibility).
+        time: (R,) range times [s], kept per anchor in `AnchorRanges.time` (None: not kept).
     """
     anchor = np.asarray(anchor)
     position = np.asarray(position, dtype=float)
@@ -171,11 +175,14 @@ def group_by_anchor(
     pos = np.zeros((n_anchors, n, 3))
     r = np.zeros((n_anchors, n))
     m = np.zeros((n_anchors, n), dtype=bool)
+    t = np.zeros((n_anchors, n))
     for a, g in enumerate(groups):
         pos[a, : g.size] = position[g]
         r[a, : g.size] = rng[g]
         m[a, : g.size] = True
-    return AnchorRanges(jnp.asarray(pos), jnp.asarray(r), jnp.asarray(m))
+        if time is not None:
+            t[a, : g.size] = np.asarray(time, dtype=float)[g]
+    return AnchorRanges(jnp.asarray(pos), jnp.asarray(r), jnp.asarray(m), None if time is None else jnp.asarray(t))
 
 
 def _offset_objective(model, lever_arm, range_time, range_tag, range_anchor, rng, n_anchors, n_per, offset):
@@ -284,7 +291,7 @@ def prepare(
     )
     r = np.asarray(ds.range, dtype=float)
     ok = np.isfinite(p).all(axis=1) & np.isfinite(r)
-    groups = group_by_anchor(ds.range_anchor, p, r, ds.n_anchors, max_per_anchor)
+    groups = group_by_anchor(ds.range_anchor, p, r, ds.n_anchors, max_per_anchor, time=ds.range_time)
     info = {
         "time_offset_s": offset,
         "ranges_used": int(ok.sum()),

@@ -1,0 +1,129 @@
+"""A stated pose error propagated into the anchor covariance (`pose_sd_m`, `pose_drift`).
+
+An error of the platform's reported poses that persists along the path (odometry drift, a frame or
+lever-arm offset) moves every tag position of a stretch together. An anchor ranged from that stretch
+absorbs it: the fit moves with the poses, and its residuals do not show it (on the simulated campaigns
+with odometry drift the fit moves by 0.1-0.7 m horizontally, about the mean pose error over the anchor's
+ranges, while the residuals' spread is 0.15-0.6 m at every lag, so no statistic of the ranges can size it;
+see docs/benchmarks/uncertainty.md). What the ranges cannot show must be stated: the two parameters
+describe the horizontal pose error delta(t) (per axis, independent axes, no vertical part) as
+
+    delta(t) = c + w(t - t0),   c ~ N(0, pose_sd_m^2),   w a Brownian motion of intensity pose_drift^2
+
+with t0 the first pose (dead reckoning is tied to the frame where it starts). Its covariance between two
+range times is k(s, t) = pose_sd_m^2 + pose_drift^2 min(s - t0, t - t0).
+
+Propagation (linear, exact for the linearised fit): the range residual res_i = |p_i - a| + b - r_i
+changes by u_i . delta(t_i) (u_i the unit vector from the anchor to the tag), so the weighted least-squares
+fit x = (a, b) moves by -A^-1 sum_i w_i J_i u_i . delta(t_i) (J_i = d res_i / d x, A = J^T W J), whose
+covariance is A^-1 M A^-1 with M = sum_h sum_ij v_i^h v_j^h^T k(t_i, t_j), v_i^h = w_i u_ih J_i. With the
+ranges in time order, min(s, t) = integral of 1[z < s] 1[z < t] dz turns the double sum into one pass:
+M = sum_h [pose_sd_m^2 S_1 S_1^T + pose_drift^2 sum_k (tau_k - tau_(k-1)) S_k S_k^T], S_k = sum_(i >= k) v_i
+(tau_i = t_i - t0, tau_0 = 0). The weights are the Cauchy weights of `nls` at the estimate (scale
+2.385 x 1.4826 x the median absolute residual about the median, at least 0.05 m).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+__all__ = ["anchor_times", "pose_error_covariance", "pose_error_covariances"]
+
+
+def pose_error_covariance(
+    pos: np.ndarray,
+    rng: np.ndarray,
+    time: np.ndarray,
+    anchor: np.ndarray,
+    sd_m: float,
+    drift: float,
+    t0: float,
+    bias: bool = True,
+    min_scale_m: float = 0.05,
+) -> np.ndarray:
+    """(3, 3) covariance [m^2] of one anchor's estimate from the stated pose error (module docstring).
+
+    Args:
+        pos: (n, 3) tag positions [m], rng: (n,) ranges [m], time: (n,) their times [s], non-decreasing.
+        anchor: (3,) the estimate [m]. sd_m: pose_sd_m [m]. drift: pose_drift [m / sqrt(s)].
+        t0: time of the first pose [s]. bias: the fit has a range bias (a fourth unknown).
+        min_scale_m: floor of the Cauchy scale [m].
+    """
+    d = np.asarray(pos, float) - np.asarray(anchor, float)
+    dist = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
+    u = d / dist[:, None]
+    res0 = dist - np.asarray(rng, float)
+    b = float(np.median(-res0)) if bias else 0.0
+    res = res0 + b
+    scale = max(2.385 * 1.4826 * float(np.median(np.abs(res - np.median(res)))), min_scale_m)
+    w = 1.0 / (1.0 + (res / scale) ** 2)
+    jac = np.column_stack([-u, np.ones(u.shape[0])]) if bias else -u
+    a_mat = (jac * w[:, None]).T @ jac
+    tau = np.maximum(np.asarray(time, float) - t0, 0.0)
+    dtau = np.diff(np.concatenate([[0.0], tau]))
+    m = np.zeros_like(a_mat)
+    for h in range(2):
+        s = np.cumsum((jac * (w * u[:, h])[:, None])[::-1], axis=0)[::-1]  # S_k = sum over i >= k of v_i
+        m += sd_m**2 * np.outer(s[0], s[0]) + drift**2 * (s * dtau[:, None]).T @ s
+    a_inv = np.linalg.pinv(a_mat)
+    c = (a_inv @ m @ a_inv)[:3, :3]
+    lam, vec = np.linalg.eigh(0.5 * (c + c.T))  # PSD by construction; rounding can leave -1e-14 on a zero axis
+    return (vec * np.maximum(lam, 0.0)) @ vec.T
+
+
+def anchor_times(dataset, groups) -> list[np.ndarray | None]:
+    """Range times [s] of each anchor's entries of `groups`, in their order: `groups.time` where the grouping
+    kept it, else the dataset's finite ranges of that anchor when their count matches the group's (None
+    where it does not: ranges were dropped at pose gaps and their times are not known here)."""
+    mask = np.asarray(groups.mask)
+    gt = getattr(groups, "time", None)
+    out: list[np.ndarray | None] = []
+    for a in range(mask.shape[0]):
+        if gt is not None:
+            out.append(np.asarray(gt)[a][mask[a]])
+            continue
+        idx = np.flatnonzero((np.asarray(dataset.range_anchor) == a) & np.isfinite(np.asarray(dataset.range)))
+        out.append(np.asarray(dataset.range_time, float)[idx] if idx.size == mask[a].sum() else None)
+    return out
+
+
+def pose_error_covariances(dataset, groups, est: np.ndarray, p, method: str) -> np.ndarray:
+    """(A, 3, 3) `pose_error_covariance` of every anchor with a finite estimate (0 elsewhere) for the
+    parameters' `pose_sd_m` and `pose_drift`; an anchor whose range times are unknown (`anchor_times`) gets
+    0 and one warning line names it."""
+    out = np.zeros((est.shape[0], 3, 3))
+    if p.pose_sd_m <= 0 and p.pose_drift <= 0:
+        return out
+    times = anchor_times(dataset, groups)
+    pos, rng, mask = (np.asarray(v) for v in (groups.position, groups.range, groups.mask))
+    t0 = float(np.asarray(dataset.pose_time)[0])
+    missing = []
+    for a in range(est.shape[0]):
+        if not np.isfinite(est[a]).all() or mask[a].sum() < 4:
+            continue
+        ta = times[a]
+        if ta is None:
+            missing.append(dataset.anchor_ids[a])
+            continue
+        out[a] = pose_error_covariance(
+            pos[a][mask[a]],
+            rng[a][mask[a]],
+            ta,
+            est[a],
+            p.pose_sd_m,
+            p.pose_drift,
+            t0,
+            bool(getattr(p, "bias", True)),
+            float(getattr(p, "min_scale_m", 0.05)),
+        )
+    if missing:
+        logging.getLogger("jaxcal").warning(
+            "%s: the range times of %d anchor(s) (%s) are not known here (ranges dropped at pose gaps): the stated "
+            "pose error (pose_sd_m, pose_drift) is not in their covariance",
+            method,
+            len(missing),
+            ", ".join(missing[:8]) + (", ..." if len(missing) > 8 else ""),
+        )
+    return out

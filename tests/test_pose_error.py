@@ -1,0 +1,135 @@
+"""The stated pose error (`pose_sd_m`, `pose_drift`) propagated into the anchor covariance."""
+
+import numpy as np
+import pytest
+
+from jaxcal.trajectory import nls
+from jaxcal.trajectory.pose_error import pose_error_covariance
+from test_nls import lissajous
+
+
+def _two_passes(gen, n=120):
+    """An anchor passed twice, along two crossing roads over a hill (as on the simulated campaigns, small):
+    range times, tag positions, anchor."""
+    t = np.concatenate([np.linspace(10.0, 22.0, n), np.linspace(80.0, 92.0, n)])
+    s = np.linspace(-12.0, 12.0, n)
+    road = np.concatenate([np.column_stack([s, 0.0 * s]), np.column_stack([-3.0 + 0.0 * s, -s])])
+    tags = np.column_stack([road + gen.normal(0.0, 0.1, (2 * n, 2)), 1.0 + 1.5 * np.exp(-((np.r_[s, s] / 6.0) ** 2))])
+    anchor = np.array([1.5, 5.0, 4.0])
+    return t, tags, anchor
+
+
+def _reference(tags, rng, t, anchor, sd, drift, t0):
+    """The double sum over range pairs written out (n^2 kernel matrix), unit weights at the same estimate."""
+    d = tags - anchor
+    dist = np.linalg.norm(d, axis=1)
+    u = d / dist[:, None]
+    b = np.median(rng - dist)
+    res = dist + b - rng
+    scale = max(2.385 * 1.4826 * np.median(np.abs(res - np.median(res))), 0.05)
+    w = 1.0 / (1.0 + (res / scale) ** 2)
+    jac = np.column_stack([-u, np.ones(len(rng))])
+    a_inv = np.linalg.inv((jac * w[:, None]).T @ jac)
+    tau = t - t0
+    k = sd**2 + drift**2 * np.minimum(tau[:, None], tau[None, :])
+    m = np.zeros((4, 4))
+    for i in range(len(rng)):
+        for j in range(len(rng)):
+            kij = k[i, j] * (u[i, :2] @ u[j, :2])  # independent horizontal axes: sum over h of u_ih u_jh
+            m += w[i] * w[j] * kij * np.outer(jac[i], jac[j])
+    return (a_inv @ m @ a_inv)[:3, :3]
+
+
+def test_pose_error_covariance_equals_the_double_sum(rng):
+    gen = np.random.default_rng(rng)
+    t, tags, anchor = _two_passes(gen, n=40)
+    r = np.linalg.norm(tags - anchor, axis=1) + 0.1 + gen.standard_t(3, t.size) * 0.05
+    for sd, drift in ((0.0, 0.02), (0.15, 0.0), (0.1, 0.05)):
+        fast = pose_error_covariance(tags, r, t, anchor, sd, drift, t0=2.0)
+        ref = _reference(tags, r, t, anchor, sd, drift, 2.0)
+        np.testing.assert_allclose(fast, ref, rtol=1e-9, atol=1e-10 * np.trace(ref))
+        assert np.linalg.eigvalsh(fast).min() > -1e-12 * np.trace(fast)
+
+
+def _fit(tags, r, x0):
+    """Gauss-Newton range fit with a bias (unit weights): what the propagation linearises."""
+    x = np.concatenate([x0, [0.0]])
+    for _ in range(20):
+        d = tags - x[:3]
+        dist = np.linalg.norm(d, axis=1)
+        jac = np.column_stack([-d / dist[:, None], np.ones(len(r))])
+        x = x - np.linalg.lstsq(jac, dist + x[3] - r, rcond=None)[0]
+    return x[:3]
+
+
+def test_drift_propagation_matches_the_spread_of_refits_under_simulated_drift(rng):
+    """Monte Carlo: reported tag positions = true + a horizontal random walk from t0 (plus an offset); the
+    refits' covariance over 400 draws is the propagated one (within the sampling error of 400 draws)."""
+    gen = np.random.default_rng(rng)
+    t, tags, anchor = _two_passes(gen)
+    r = np.linalg.norm(tags - anchor, axis=1)  # exact ranges: the only error is the pose error
+    sd, drift, t0 = 0.02, 0.01, 0.0  # small enough for the linearisation (at 0.05, 0.03: 24 % more in y)
+    pred = pose_error_covariance(tags, r, t, anchor, sd, drift, t0)
+    fits = []
+    for _ in range(400):
+        steps = gen.normal(0.0, 1.0, (t.size, 2)) * drift * np.sqrt(np.diff(np.concatenate([[t0], t])))[:, None]
+        delta = np.cumsum(steps, axis=0) + gen.normal(0.0, sd, 2)
+        fits.append(_fit(tags + np.column_stack([delta, np.zeros(t.size)]), r, anchor))
+    emp = np.cov(np.array(fits).T)
+    # horizontal block: the propagated variances hold the refits' spread to within 20 % (400 draws: about 7 % sd)
+    for v in (np.array([1.0, 0.0]), np.array([0.0, 1.0]), np.array([1.0, 1.0]) / np.sqrt(2)):
+        assert 0.8 < (v @ emp[:2, :2] @ v) / (v @ pred[:2, :2] @ v) < 1.25
+    assert np.trace(pred[:2, :2]) > (sd**2 + drift**2 * 50.0)  # at least the pose error at the passes' mean time
+
+
+def test_stated_pose_error_widens_nls_covariance_by_the_propagated_term():
+    ds = lissajous(noise=0.05, seed=3)
+    base = nls.calibrate(ds, {"mirror_profile": 0})
+    wide = nls.calibrate(ds, {"mirror_profile": 0, "pose_sd_m": 0.2, "pose_drift": 0.01})
+    np.testing.assert_allclose(wide.position, base.position)
+    for a in range(3):
+        extra = wide.covariance[a] - base.covariance[a]
+        assert np.linalg.eigvalsh(extra).min() > -1e-12
+        # a shared offset of 0.2 m per axis moves the anchor with it: at least that much horizontally
+        assert np.diag(extra)[:2].min() > 0.5 * 0.2**2
+        assert np.linalg.eigvalsh(wide.covariance[a]).min() >= 0
+
+
+@pytest.mark.parametrize("bad", [{"pose_sd_m": -0.1}, {"pose_drift": float("nan")}])
+def test_negative_pose_error_is_refused(bad):
+    from jaxcal.errors import JaxcalError
+
+    with pytest.raises(JaxcalError, match=f"parameter {next(iter(bad))}: must be"):
+        nls.NLSParams(**bad)
+
+
+def test_cli_stated_pose_error_then_evaluate_prints_horizontal_and_vertical_apart(tmp_path):
+    from conftest import run_cli
+    from jaxcal.io import hdf5
+
+    ds = lissajous(noise=0.05, seed=1)
+    f, out = tmp_path / "liss.h5", tmp_path / "R.h5"
+    hdf5.write(f, ds)
+    proc = run_cli("calibrate", f, "--method", "nls", "-o", out, "--set", "pose_sd_m=0.1", "--set", "pose_drift=0.01")
+    assert proc.returncode == 0, proc.stderr
+    res = hdf5.read(out)  # written, so every finite block passed the writer's symmetric-PSD check
+    assert np.isfinite(res.covariance).all() and (np.diagonal(res.covariance, axis1=1, axis2=2)[:, :2] > 0.01).all()
+    ev = run_cli("evaluate", out, "--truth", f)
+    assert ev.returncode == 0, ev.stderr
+    lines = ev.stdout.splitlines()
+    for part in ("horizontal", "vertical"):
+        line = next(x for x in lines if x.strip().startswith(part))
+        assert "predicted rms" in line and "actual" in line and "NEES per coordinate" in line and "coverage" in line
+
+
+def test_range_times_are_those_of_the_grouping_or_of_the_dataset_when_a_method_regroups():
+    from jaxcal.trajectory.pose_error import anchor_times
+    from jaxcal.trajectory.poses import AnchorRanges, prepare_poses
+
+    ds = lissajous(seed=2)
+    groups, _ = prepare_poses(ds, nls.NLSParams())
+    kept = anchor_times(ds, groups)
+    regrouped = anchor_times(ds, AnchorRanges(groups.position, groups.range, groups.mask))  # as gp passes them
+    for a in range(3):
+        np.testing.assert_array_equal(kept[a], ds.range_time[ds.range_anchor == a])
+        np.testing.assert_array_equal(regrouped[a], kept[a])
