@@ -112,6 +112,7 @@ def test_cli_stated_pose_error_then_evaluate_prints_horizontal_and_vertical_apar
     hdf5.write(f, ds)
     proc = run_cli("calibrate", f, "--method", "nls", "-o", out, "--set", "pose_sd_m=0.1", "--set", "pose_drift=0.01")
     assert proc.returncode == 0, proc.stderr
+    assert "poses taken as exact" not in proc.stdout + proc.stderr  # the error was stated
     res = hdf5.read(out)  # written, so every finite block passed the writer's symmetric-PSD check
     assert np.isfinite(res.covariance).all() and (np.diagonal(res.covariance, axis1=1, axis2=2)[:, :2] > 0.01).all()
     ev = run_cli("evaluate", out, "--truth", f)
@@ -133,3 +134,11 @@ def test_range_times_are_those_of_the_grouping_or_of_the_dataset_when_a_method_r
     for a in range(3):
         np.testing.assert_array_equal(kept[a], ds.range_time[ds.range_anchor == a])
         np.testing.assert_array_equal(regrouped[a], kept[a])
+
+
+def test_calibrate_says_when_a_trajectory_covariance_takes_the_poses_as_exact():
+    from jaxcal.commands.calibrate import _pose_error_stated
+
+    assert not _pose_error_stated({}) and not _pose_error_stated({"pose_drift": 0.0, "pose_sd_m": "0"})
+    assert _pose_error_stated({"pose_drift": 0.02}) and _pose_error_stated({"pose_sd_m": "0.1"})
+    assert not _pose_error_stated({"pose_drift": "x"})  # not a number: the parameter check reports it

@@ -126,12 +126,26 @@ def run(args) -> int:
     )
     partial = f" ({pu['partial']} with a coordinate not fixed)" if pu["partial"] else ""
     quality = f", predicted RMS uncertainty {pred:.3g} m" if np.isfinite(pred) else ", no covariance"
+    if not mesh and np.isfinite(pred) and not _pose_error_stated(params):
+        quality += " (poses taken as exact: state their error with --set pose_drift=... / pose_sd_m=...)"
     say(
         args,
         _summary(args.method, result.ids, est, fixed) + f"{partial}{quality} in {elapsed:.2f} s "
         f"-> {args.output}{out.note()}",
     )
     return 0
+
+
+def _pose_error_stated(params: dict) -> bool:
+    """Whether the run was told the platform's pose error (`jaxcal.trajectory.pose_error`): without it a
+    trajectory covariance holds the range noise only, and drift shared by a stretch of the path is not in it."""
+    for key in ("pose_sd_m", "pose_drift"):
+        try:
+            if float(params.get(key, 0.0)) > 0.0:
+                return True
+        except (TypeError, ValueError):
+            return False
+    return False
 
 
 def _stages(method: str, params: dict) -> int:
