@@ -27,8 +27,8 @@ def _procrustes_rmse(x: Array, ref: Array) -> Array:
 @eqx.filter_jit
 def offset_bootstrap(
     state: _State,
-    obs: Observations,
-    nb: _Numbers,
+    observations: Observations,
+    numbers: _Numbers,
     key: Array,
     n_boot: int,
     solver: str,
@@ -47,31 +47,31 @@ def offset_bootstrap(
 
     Args:
         state: the network-offset fit (positions (m, D), c, b).
-        obs: the observations it was fitted to (padding has weight 0 and is never resampled).
-        nb: the numbers of that fit (`use_c` = 1).
+        observations: the observations it was fitted to (padding has weight 0 and is never resampled).
+        numbers: the numbers of that fit (`use_c` = 1).
         key: PRNG key; n_boot: replicates (static).
 
     Returns:
         ((2,) RMSE [m] of (with offset, without offset), averaged over the replicates; (n_boot, 2) outcome
         codes of the replicate fits (`jaxcal.solver.outcome`)).
     """
-    e = _errors(state, obs, nb)
-    model = obs.z - e
-    real = obs.w > 0
+    e = _errors(state, observations, numbers)
+    model = observations.z - e
+    real = observations.w > 0
     logits = jnp.where(real, 0.0, -jnp.inf)
     # Fitted residuals are smaller than the errors by about sqrt((M - P) / M) (P fitted parameters):
     # resample them inflated by the inverse (the usual correction of a regression residual bootstrap).
     m, dim = state.x.shape
-    n_par = dim * m - dim * (dim + 1) // 2 + 1 + nb.use_b * m
+    n_par = dim * m - dim * (dim + 1) // 2 + 1 + numbers.use_b * m
     n_obs = jnp.sum(real)
     e_boot = e * jnp.sqrt(n_obs / jnp.maximum(n_obs - n_par, 1.0))
-    nb_none = eqx.tree_at(lambda t: t.use_c, nb, jnp.zeros_like(nb.use_c))
+    numbers_none = eqx.tree_at(lambda t: t.use_c, numbers, jnp.zeros_like(numbers.use_c))
     start_none = eqx.tree_at(lambda t: t.c, state, jnp.zeros_like(state.c))
 
     def one(k):
         pick = jax.random.categorical(k, logits, shape=e.shape)
-        zb = jnp.where(real, model + e_boot[pick], obs.z)
-        obs_b = Observations(obs.i, obs.j, zb, obs.w)
+        zb = jnp.where(real, model + e_boot[pick], observations.z)
+        obs_b = Observations(observations.i, observations.j, zb, observations.w)
 
         def fit(y0, nbk):
             sol = optx.least_squares(
@@ -79,7 +79,7 @@ def offset_bootstrap(
             )
             return _procrustes_rmse(sol.value.x, state.x) ** 2, S.outcome(sol)
 
-        return jax.tree.map(lambda *a: jnp.stack(a), fit(state, nb), fit(start_none, nb_none))
+        return jax.tree.map(lambda *a: jnp.stack(a), fit(state, numbers), fit(start_none, numbers_none))
 
     sq, codes = jax.vmap(one)(jax.random.split(key, n_boot))
     return jnp.sqrt(jnp.mean(sq, axis=0)), codes

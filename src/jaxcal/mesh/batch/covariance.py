@@ -65,19 +65,19 @@ def covariance_union(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 0.5 * (out + out.T)
 
 
-def posterior_excess(cov_post: np.ndarray, laplace: np.ndarray, nu: float) -> np.ndarray:
-    """What the posterior of `estimate=mean` adds to its own linearisation: (k C - L)_+, with C the
-    posterior sample covariance, L the Laplace covariance of the same model with a Gaussian likelihood
-    of the same scale s, (J^T W J / s^2 + prior)^-1, and k = (nu + 1) / (nu + 3) the Student-t
-    likelihood's Fisher information per pair relative to that Gaussian ((.)_+ the positive semi-definite
-    part). Where the ranges fix the nodes to first order k C ~ L and this is ~0 (Monte Carlo noise); where
-    the posterior is curved or skewed (a weakly determined direction) it is the width the linearised
-    pair covariance (`pair_covariance`) cannot see. The posterior itself is not a covariance of the
-    error: it has no per-pair systematic errors that the geometry absorbs, and its Cauchy tails make it
-    twice as wide as its scale in every well-determined direction; the union of the two (before) was
-    too wide in the family benchmarks (NEES/dof median 0.48-0.56, coverage 98-100 %)."""
+def posterior_excess(posterior: np.ndarray, laplace: np.ndarray, nu: float) -> np.ndarray:
+    """What the posterior of `estimate=mean` adds to its own linearisation: (k C - L)_+, with C (`posterior`)
+    the posterior sample covariance, L (`laplace`) the Laplace covariance of the same model with a Gaussian
+    likelihood of the same scale s, (J^T W J / s^2 + prior)^-1, and k = (nu + 1) / (nu + 3) the Student-t
+    likelihood's Fisher information per pair relative to that Gaussian ((.)_+ the positive semi-definite part).
+    Where the ranges fix the nodes to first order k C ~ L and this is ~0 (Monte Carlo noise); where the
+    posterior is curved or skewed (a weakly determined direction) it is the width the linearised pair covariance
+    (`pair_covariance`) cannot see. The posterior itself is not a covariance of the error: it has no per-pair
+    systematic errors that the geometry absorbs, and its Cauchy tails make it twice as wide as its scale in
+    every well-determined direction; the union of the two (before) was too wide in the family benchmarks
+    (NEES/dof median 0.48-0.56, coverage 98-100 %)."""
     lap = 0.5 * (laplace + laplace.T)
-    return covariance_union(lap, (nu + 1.0) / (nu + 3.0) * cov_post) - lap
+    return covariance_union(lap, (nu + 1.0) / (nu + 3.0) * posterior) - lap
 
 
 @eqx.filter_jit

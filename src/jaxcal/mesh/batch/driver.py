@@ -396,26 +396,26 @@ def solve(
     )
 
 
-def warn_if_unmixed(sol: BatchSolution, p: BatchParams) -> bool:
+def warn_if_unmixed(solution: BatchSolution, params: BatchParams) -> bool:
     """Log one warning line (logger `jaxcal`) when `estimate=mean` fell back to the fit; True if so."""
-    if p.estimate != "mean" or sol.estimate == "mean":
+    if params.estimate != "mean" or solution.estimate == "mean":
         return False
     hint = "add ranges"
-    if "R-hat" in sol.fallback_reason:
-        hint = f"raise mcmc_steps (now {p.mcmc_steps}) or add ranges"
+    if "R-hat" in solution.fallback_reason:
+        hint = f"raise mcmc_steps (now {params.mcmc_steps}) or add ranges"
     logging.getLogger("jaxcal").warning(
         "batch: %s: reporting the fit (estimate=map) and its covariance instead; %s",
-        sol.fallback_reason or "the posterior mean is not available",
+        solution.fallback_reason or "the posterior mean is not available",
         hint,
     )
     return True
 
 
-def check_solver(sol: BatchSolution, p: BatchParams, method: str = "batch") -> S.SolverReport:
-    """The outcome of the fits `sol` rests on (`BatchSolution.solver_codes`), with one warning line (logger
+def check_solver(solution: BatchSolution, params: BatchParams, method: str = "batch") -> S.SolverReport:
+    """The outcome of the fits `solution` rests on (`BatchSolution.solver_codes`), with one warning line (logger
     `jaxcal`) when one of them did not converge; its `params()` go into the Result params."""
-    rep = S.report(sol.solver_codes, "fits")
-    rep.warn(method, f"raise max_steps (now {p.max_steps}) or tol (now {p.tol:g})")
+    rep = S.report(solution.solver_codes, "fits")
+    rep.warn(method, f"raise max_steps (now {params.max_steps}) or tol (now {params.tol:g})")
     return rep
 
 

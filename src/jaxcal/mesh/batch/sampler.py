@@ -48,10 +48,10 @@ def posterior_mean(
     free: Array,
     template: Array,
     mask: Array,
-    c: Array,
-    b: Array,
-    obs: Observations,
-    nb: _Numbers,
+    offset: Array,
+    node_offsets: Array,
+    observations: Observations,
+    numbers: _Numbers,
     key: Array,
     nu: Array,
     n_chains: int,
@@ -64,7 +64,7 @@ def posterior_mean(
     The least-squares / robust fit is the posterior *mode*. Where the geometry is weak (a direction the
     ranges pin down only to second order, e.g. nodes nearly in one plane or on one line), the posterior is
     curved and skewed, and its mode sits away from its mean; the mean is the estimate with the least
-    expected squared error. Model: one observation per pair (`obs`, the per-pair median summary), each
+    expected squared error. Model: one observation per pair (`observations`, the per-pair median summary), each
     error Student-t with `nu` degrees of freedom and a common scale s = 1.4826 MAD(e) sqrt(M / (M - P)) of
     the fit's pair errors (per-pair systematic errors dominate on real meshes: repeated ranges of a pair
     are not independent, so the pair, not the single range, is the unit); flat prior on positions, the
@@ -75,13 +75,13 @@ def posterior_mean(
 
     Args:
         free: (F,) free coordinates of the fit; template: (m, D) frame coordinates (fixed ones 0);
-        mask: (m, D) bool, which entries of `template` are free; c, b: the fit's offsets;
-        obs: pair observations (padding has weight 0); nb: numbers of the fit; key: PRNG key;
+        mask: (m, D) bool, which entries of `template` are free; offset, node_offsets: the fit's range offsets c and b;
+        observations: pair observations (padding has weight 0); numbers: `_Numbers` of the fit; key: PRNG key;
         nu: Student-t degrees of freedom; n_chains, n_steps: static sampler sizes.
         mcse: static; > 0: stop after the burn-in once the Monte Carlo error of the mean is below mcse
             posterior sd (and split R-hat below 1.01) in every free coordinate, checked every two blocks of
             `_BLOCK` transitions; 0: run all n_steps.
-        sample_node_offsets: static; False when the model has no per-node offsets (`nb.use_b` off): they
+        sample_node_offsets: static; False when the model has no per-node offsets (`numbers.use_b` off): they
             then enter no range, their posterior is their prior (mean 0, sd `node_bias_sigma_m`,
             independent of the rest), and they are returned as such instead of being sampled (P = F + 1
             sampled dimensions instead of F + 1 + n: the whitening costs O(P^2) per gradient).
@@ -92,27 +92,27 @@ def posterior_mean(
         model with a Gaussian likelihood of the same scale, (J^T W J / s^2 + prior)^-1 at the fit (P, P):
         the linearisation that `solve` compares the samples with).
     """
-    f, n_b = free.shape[0], b.shape[0]
+    f, n_b = free.shape[0], node_offsets.shape[0]
     idx = jnp.nonzero(mask.ravel(), size=f)[0]
-    b_fixed = jnp.zeros_like(b)
-    theta0 = jnp.concatenate([free, jnp.reshape(c, (1,))] + ([b] if sample_node_offsets else []))
+    b_fixed = jnp.zeros_like(node_offsets)
+    theta0 = jnp.concatenate([free, jnp.reshape(offset, (1,))] + ([node_offsets] if sample_node_offsets else []))
     p_dim = theta0.shape[0]
 
     def errs(theta):
         x = template.ravel().at[idx].set(theta[:f]).reshape(template.shape)
-        return _errors(_State(x, theta[f], theta[f + 1 :] if sample_node_offsets else b_fixed), obs, nb)
+        return _errors(_State(x, theta[f], theta[f + 1 :] if sample_node_offsets else b_fixed), observations, numbers)
 
-    real = obs.w > 0
+    real = observations.w > 0
     e0 = errs(theta0)
-    n_par = f + nb.use_c + nb.use_b * n_b
+    n_par = f + numbers.use_c + numbers.use_b * n_b
     scale = _pair_scale(e0, real, n_par)
-    sc, sb = _prior_scales(nb)
+    sc, sb = _prior_scales(numbers)
     prior_prec = jnp.concatenate([jnp.zeros(f), jnp.stack([1.0 / sc**2]), jnp.full(n_b, 1.0 / sb**2)])
     prior_prec = prior_prec[:p_dim]
 
     def logp(theta):
         e = errs(theta)
-        ll = -0.5 * (nu + 1.0) * jnp.sum(obs.w * jnp.log1p((e / scale) ** 2 / nu))
+        ll = -0.5 * (nu + 1.0) * jnp.sum(observations.w * jnp.log1p((e / scale) ** 2 / nu))
         return ll - 0.5 * jnp.sum(prior_prec * theta * theta)
 
     # Hamiltonian Monte Carlo in whitened coordinates theta = center + root @ u: root @ root.T is the
@@ -120,7 +120,7 @@ def posterior_mean(
     # covariance, which follows a curved, weakly determined posterior. The leapfrog step size adapts
     # during the burn-in towards a mean acceptance probability of 0.8.
     jac = jax.jacfwd(errs)(theta0)
-    info = (jac.T * obs.w) @ jac / scale**2 + jnp.diag(prior_prec)
+    info = (jac.T * observations.w) @ jac / scale**2 + jnp.diag(prior_prec)
 
     def sqrt_cov(cov):
         lam, vec = jnp.linalg.eigh(0.5 * (cov + cov.T))
