@@ -35,7 +35,7 @@ def offset_bootstrap(
     tol: float,
     max_steps: int,
     tail: int = 0,
-) -> Array:
+) -> tuple[Array, Array]:
     """Predicted position error of fitting the common range offset c or leaving it out (`bias=auto`).
 
     A common offset is not always worth estimating: where the geometry is weak (e.g. nearly planar 3-D

@@ -368,7 +368,7 @@ def solve(
         nb,
     )
     f = free.size
-    if est.used == "mean":  # the pair covariance plus what the posterior adds to its own linearisation
+    if est.excess is not None:  # (used=mean) the pair covariance plus what the posterior adds to its linearisation
         cov_free = covariance_union(est.excess, est.excess + cov_pair[:f, :f])
     else:  # the Laplace covariance of the all-ranges fit, widened to the pair covariance
         cov_free = covariance_union(est.model_covariance, cov_pair[:f, :f])

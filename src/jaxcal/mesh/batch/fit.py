@@ -165,7 +165,7 @@ def _irls_all(
     max_steps: int,
     n_iter: int,
     tail: int = 0,
-) -> _State:
+) -> tuple[_State, Array]:
     """Minimise the robust cost over every single range by iteratively reweighted least squares.
 
     With fixed weights w_k the cost of a pair's ranges, sum_k w_k (z_k - m)^2, equals

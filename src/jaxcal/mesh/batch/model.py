@@ -31,15 +31,19 @@ class _Numbers(eqx.Module):
 
     @classmethod
     def of(cls, p: BatchParams) -> _Numbers:
-        nums = [
-            jnp.asarray(float(getattr(p, f)), dtype=float)
-            for f in ("sigma_r", "node_bias_sigma_m", "nlos_weight", "nlos_mean_m", "outlier_weight", "outlier_span_m")
-        ]
+        def number(name: str) -> Array:
+            return jnp.asarray(float(getattr(p, name)), dtype=float)
+
         return cls(
-            *nums,
-            jnp.asarray(LOSSES.index(p.loss)),
-            jnp.asarray(float(p.bias != "none")),
-            jnp.asarray(float(p.bias == "node")),
+            sigma_r=number("sigma_r"),
+            node_bias_sigma_m=number("node_bias_sigma_m"),
+            nlos_weight=number("nlos_weight"),
+            nlos_mean_m=number("nlos_mean_m"),
+            outlier_weight=number("outlier_weight"),
+            outlier_span_m=number("outlier_span_m"),
+            loss_id=jnp.asarray(LOSSES.index(p.loss)),
+            use_c=jnp.asarray(float(p.bias != "none")),
+            use_b=jnp.asarray(float(p.bias == "node")),
         )
 
     def with_loss(self, loss: str) -> _Numbers:

@@ -27,7 +27,7 @@ def _pad(a: np.ndarray, size: int) -> np.ndarray:
 
 def _active_nodes(i: np.ndarray, j: np.ndarray, n: int, a0: int) -> np.ndarray:
     """Boolean (N,) mask of the nodes connected to a0 through measured pairs."""
-    adj = [[] for _ in range(n)]
+    adj: list[list[int]] = [[] for _ in range(n)]
     for u, v in zip(i.tolist(), j.tolist(), strict=False):
         adj[u].append(v)
         adj[v].append(u)

@@ -22,7 +22,7 @@ _BURN = 250  # most transitions of each of the two burn-in phases of `posterior_
 _BLOCK = 125  # transitions per block of `posterior_mean` after the burn-in (its stopping rule's unit)
 
 
-def _split_rhat(s1: Array, s2: Array, n: int) -> Array:
+def _split_rhat(s1: Array, s2: Array, n: int | Array) -> Array:
     """Split-chain potential scale reduction R-hat per coordinate (Gelman et al.).
 
     Args:
@@ -273,7 +273,7 @@ def posterior_defect(
     pairs = {
         (min(a, b), max(a, b)) for a, b in zip(np.asarray(i).tolist(), np.asarray(j).tolist(), strict=False) if a != b
     }
-    nbrs = [set() for _ in range(n_nodes)]
+    nbrs: list[set[int]] = [set() for _ in range(n_nodes)]
     for a, b in pairs:
         nbrs[a].add(b)
         nbrs[b].add(a)
