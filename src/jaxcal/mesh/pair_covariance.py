@@ -277,7 +277,7 @@ def position_covariance(
     x = np.asarray(position, dtype=np.float64)
     n, d = x.shape
     a0, a1, a2 = anchors
-    placed = np.isfinite(x).all(axis=1)
+    placed = np.asarray(np.isfinite(x).all(axis=1))
     out = np.full((n, d, d), np.nan)
     r = np.asarray(range_m, dtype=np.float64)
     from jaxcal.mesh.batch import observations  # noqa: PLC0415 - batch imports this module
@@ -318,10 +318,10 @@ def position_covariance(
     cov, _ = pair_covariance(jac, e, w, spread, i, j, n, np.zeros(jac.shape[1]), shared)
     cov_all = np.zeros((n * d, n * d))
     cov_all[np.ix_(free, free)] = cov[: free.size, : free.size]
-    for k in np.flatnonzero(placed):
-        out[k] = cov_all[k * d : (k + 1) * d, k * d : (k + 1) * d]
-        dev = x[k] - x_fit[k]
-        out[k] = out[k] + np.outer(dev, dev)
+    for node in np.flatnonzero(placed):
+        out[node] = cov_all[node * d : (node + 1) * d, node * d : (node + 1) * d]
+        dev = x[node] - x_fit[node]
+        out[node] = out[node] + np.outer(dev, dev)
     return 0.5 * (out + np.swapaxes(out, 1, 2))
 
 
