@@ -396,6 +396,21 @@ def test_tune_with_the_consensus_objective(monkeypatch):
     assert res.params == (res.tuned if res.accepted else res.start)
 
 
+def test_consensus_without_a_batch_fit_falls_back_and_says_so(monkeypatch):
+    from jaxcal.commands.tune import _summary
+    from jaxcal.errors import JaxcalError
+
+    def no_fit(dataset, config):
+        raise JaxcalError("t: the batch fit placed no node: no consensus reference")
+
+    monkeypatch.setattr(E, "consensus_reference", no_fit)
+    res = T.tune(make_mesh(k=4, seed=9), SMALL, None, objective_name="consensus", tau_temp=0.1, max_steps=1)
+    assert res.objective == "consensus" and res.settings["objective_used"] == "nlpl"  # 5 nodes: no folds
+    assert "placed no node" in res.settings["fallback_reason"] and res.hard_key == "nlpl"
+    line = _summary(res, "consensus", "p.json")
+    assert "\n" not in line and "placed no node" in line and "calibrate's nlpl" in line
+
+
 def test_window_and_truth_required():
     ds = make_mesh(k=6)
     assert T.window(ds, 3).n_epochs == 3 and T.window(ds, 100) is ds

@@ -13,7 +13,7 @@ Objectives (over the tuning data, by default the whole dataset):
 - `truth`: RMSE [m] of the final positions (a0 excluded) against the ground truth in the
   configuration frame, each position the tempered eq. (13) estimate of `soft_estimates` (a grid
   posterior collapses into one cell, where eq. 13 itself is piecewise constant: zero gradient).
-- `evidence` (the default; no ground truth): cross-validation over pairs. The pairs between
+- `evidence` (no ground truth): cross-validation over pairs. The pairs between
   non-anchor nodes are dealt into two folds (`tune_eval.pair_folds`); per fold the filter runs
   without that fold's ranges, and the loss is the mean over the fold's pairs of
   `sqrt(r^2 + 0.05^2)`, `r = median_k z_ij - |x_i - x_j|` (the pair's median range against the
@@ -21,12 +21,15 @@ Objectives (over the tuning data, by default the whole dataset):
   A node placed wrongly mispredicts the ranges it was not fitted to. The hard counterpart that the
   guard compares is `tune_eval.heldout_range_error`. Datasets with fewer than 5 nodes have no pair
   to hold out: `evidence` then falls back to `nlpl` (and says so in `TuneResult.settings`).
-- `consensus` (no ground truth): `truth` with the robust batch fit's positions in place of the truth
+- `consensus` (the default; no ground truth): `truth` with the robust batch fit's positions in place of the truth
   (`tune_eval.consensus_reference`: `calibrate --method batch`, `estimate=map`, of the whole
   dataset, in the configuration frame; nodes it leaves unplaced do not count). The batch fit is
   the most accurate method on these networks, so the objective's error against the true RMSE is
   the batch fit's own, which does not depend on the filter's parameters. Its hard counterpart
   (the guard) is `consensus_m` of `tune_eval.hard_metrics`: calibrate's track RMSE against the fit.
+  It ranks parameter sets like the true RMSE where `evidence` does not (docs/benchmarks/tuning.md,
+  section 1: Spearman median +0.84 against -0.29 on validation seeds), hence the default. Without
+  a batch fit (it raises) `tune` falls back to `evidence` (`settings["fallback_reason"]`).
 - `nlpl`: negative log predictive likelihood of the measured ranges, in nats per range factor.
   Per epoch and node, before the update, the log normaliser of eq. (12), `log sum_g pbar(g) L(g)`
   (`FilterOut.log_evidence`), with each eq. (11) factor read as a density of the range z on [0, L]:
@@ -414,8 +417,8 @@ class TuneResult:
 
     @property
     def hard_key(self) -> str:
-        """The hard figure the guard compared (`hard_key`)."""
-        return hard_key(self.objective, self.hard_before)
+        """The hard figure the guard compared (`hard_key` of the objective used)."""
+        return hard_key(self.settings.get("objective_used", self.objective), self.hard_before)
 
 
 def hard_key(objective_name: str, hard_before: dict) -> str:
@@ -473,7 +476,7 @@ def tune(
     params: pgp.PGPParams | dict | None = None,
     config: str | None = None,
     *,
-    objective_name: str = "evidence",
+    objective_name: str = "consensus",
     epochs: int | None = None,
     cell_m: float | None = None,
     tau_temp: float = 0.05,
@@ -533,7 +536,12 @@ def tune(
     mix = params.range_model == "mixture"
     t0 = time.perf_counter()
     # the consensus reference: one batch fit of the whole recording, for the gradient phase and guard
-    ref = tune_eval.consensus_reference(dataset, config) if objective_name == "consensus" else None
+    asked, ref, fallback = objective_name, None, ""
+    if objective_name == "consensus":
+        try:
+            ref = tune_eval.consensus_reference(dataset, config)
+        except JaxcalError as e:  # no reference: the held-out objective, which needs none either
+            objective_name, fallback = "evidence", str(e)
     split = max(0, ds.n_epochs - int(tail)) if tail else 0
     pairs_before, states = None, None
     if split:
@@ -601,7 +609,7 @@ def tune(
         params=tuned if accepted else start,
         start=start,
         tuned=tuned,
-        objective=objective_name,
+        objective=asked,
         before=before,
         after=after,
         hard_before=hard_before,
@@ -629,6 +637,7 @@ def tune(
             "guard_t_min": GUARD_T,
             # consensus: nodes the batch fit left unplaced (not scored; -1: not used)
             "consensus_unplaced": -1 if ref is None else int((~np.isfinite(ref).all(-1)).sum()),
+            "fallback_reason": fallback,  # why consensus fell back to evidence ("" when it did not)
         },
         seconds={"tune": t1 - t0, "check": time.perf_counter() - t1},
     )
