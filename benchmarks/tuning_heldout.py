@@ -64,7 +64,7 @@ def main() -> None:
     ap.add_argument("--tune-epochs", type=int, default=None)
     ap.add_argument("--tune-cell", type=float, default=None)
     ap.add_argument("--max-steps", type=int, default=12)
-    ap.add_argument("--objective", default="consensus")
+    ap.add_argument("--objective", default="evidence")
     ap.add_argument("--families", default=",".join(FAMILIES))
     ap.add_argument("--no-real", action="store_true")
     ap.add_argument("--tests", type=int, default=2, help="test seeds per family (at most 8)")

@@ -1,4 +1,4 @@
-"""`jaxcal tune FILE --method pgp --objective consensus|evidence|truth|nlpl -o PARAMS.json [--config NAME]
+"""`jaxcal tune FILE --method pgp --objective evidence|consensus|truth|nlpl -o PARAMS.json [--config NAME]
 [--tail K | --full] [--epochs K] [--cell M] [--max-steps S] [--set K=V ...]`: fit sigma_r, sigma_v
 and tau of the PGP filter by gradient (Optimistix BFGS), keeping them only if `calibrate` does better
 with them."""
@@ -11,12 +11,12 @@ def add_arguments(p) -> None:
     p.add_argument("--method", default="pgp", choices=["pgp"], help="filter to tune (pgp)")
     p.add_argument(
         "--objective",
-        default="consensus",
-        choices=["consensus", "evidence", "truth", "nlpl"],
-        help="consensus (default, no truth needed): RMSE against the robust batch fit of the same "
-        "recording (calibrate --method batch, estimate=map); evidence (no truth needed): predict the "
-        "ranges of pairs held out from the filter (cross-validation over pairs); truth: RMSE against "
-        "the ground truth; nlpl: the filter's own predictive likelihood of the ranges (ranks "
+        default="evidence",
+        choices=["evidence", "consensus", "truth", "nlpl"],
+        help="evidence (default, no truth needed): predict the ranges of pairs held out from the "
+        "filter (cross-validation over pairs); consensus (no truth needed): RMSE against the robust "
+        "batch fit of the same recording (calibrate --method batch, estimate=map); truth: RMSE "
+        "against the ground truth; nlpl: the filter's own predictive likelihood of the ranges (ranks "
         "parameters poorly)",
     )
     p.add_argument(
