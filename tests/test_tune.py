@@ -348,6 +348,69 @@ def test_theta_round_trip_with_the_mixture_parameters():
     np.testing.assert_allclose([float(prm.nlos_weight), float(prm.nlos_mean_m)], [0.15, 2.5])
 
 
+def test_consensus_with_the_truth_as_reference_is_the_truth_objective():
+    """`consensus` is `truth` with the batch fit in place of the truth: given the true positions as
+    its reference it equals `truth` (value and gradient; hard figure `consensus_m` = `rmse_m`)."""
+    ds = make_mesh(n=6, k=5, seed=7)
+    p = PGPParams(**SMALL)
+    true = T.truth_in_filter_order(ds, None, np.arange(ds.n_nodes))  # dataset order, config frame
+    want, order = T.make_problem(ds, p, None, "truth", tau_temp=0.1)
+    got, order2 = T.make_problem(ds, p, None, "consensus", tau_temp=0.1, reference=true)
+    assert got.kind == "consensus" and (order == order2).all()
+    theta = T.theta_of(0.8, 0.7, 0.6, jnp.float64)
+    v = [float(jax.jit(T.objective)(theta, q)) for q in (want, got)]
+    assert np.isfinite(v[0]) and v[1] == pytest.approx(v[0], rel=1e-12)
+    g = [np.asarray(jax.jit(jax.grad(T.objective))(theta, q)) for q in (want, got)]
+    np.testing.assert_allclose(g[1], g[0], rtol=1e-10, atol=1e-14)
+    m = E.hard_metrics(ds, p, None, reference=true)
+    assert m["consensus_m"] == pytest.approx(m["rmse_m"], rel=1e-6)
+    # a node without a reference (the batch fit left it unplaced) is not scored
+    part = true.copy()
+    part[4] = np.nan
+    e = np.asarray(E.hard_run(ds, p, None)[2].estimate, np.float64)  # filter order; the hard run's estimates
+    o = np.asarray(order)
+    ok = np.isfinite(e).all(-1) & np.isfinite(part[o]).all(-1)[None]
+    ok[:, 0] = False
+    err = np.where(ok[..., None], e - np.nan_to_num(part[o])[None], 0.0)
+    rmse = np.sqrt((err**2).sum() / ok.sum())
+    assert E.hard_metrics(ds, p, None, reference=part)["consensus_m"] == pytest.approx(rmse, rel=1e-5)
+
+
+def test_tune_with_the_consensus_objective(monkeypatch):
+    """End to end: the batch fit is the reference of the gradient phase and of the guard (one fit),
+    and the guard compares calibrate's track RMSE against it before and after."""
+    ds = make_mesh(n=6, k=6, seed=8)
+    ref = E.consensus_reference(ds, None)
+    true = T.truth_in_filter_order(ds, None, np.arange(ds.n_nodes))
+    assert ref.shape == (6, 2) and np.isfinite(ref).all()
+    assert np.sqrt(np.mean(np.sum((ref[1:] - true[1:]) ** 2, -1))) < 0.5  # 0.15 m noise: close
+    calls = []
+    monkeypatch.setattr(E, "consensus_reference", lambda *a: calls.append(1) or ref)
+    start = {**SMALL, "sigma_r": 2.0}
+    res = T.tune(ds, start, None, objective_name="consensus", tau_temp=0.1, max_steps=3)
+    assert len(calls) == 1 and res.hard_key == "consensus_m" and res.settings["consensus_unplaced"] == 0
+    assert res.after <= res.before and res.tuned["sigma_r"] != start["sigma_r"]
+    want = E.hard_metrics(ds, start, None, ref)
+    assert {k: res.hard_before[k] for k in want} == want
+    assert res.accepted == (res.hard_after["consensus_m"] < res.hard_before["consensus_m"])
+    assert res.params == (res.tuned if res.accepted else res.start)
+
+
+def test_consensus_without_a_batch_fit_falls_back_and_says_so(monkeypatch):
+    from jaxcal.commands.tune import _summary
+    from jaxcal.errors import JaxcalError
+
+    def no_fit(dataset, config):
+        raise JaxcalError("t: the batch fit placed no node: no consensus reference")
+
+    monkeypatch.setattr(E, "consensus_reference", no_fit)
+    res = T.tune(make_mesh(k=4, seed=9), SMALL, None, objective_name="consensus", tau_temp=0.1, max_steps=1)
+    assert res.objective == "consensus" and res.settings["objective_used"] == "nlpl"  # 5 nodes: no folds
+    assert "placed no node" in res.settings["fallback_reason"] and res.hard_key == "nlpl"
+    line = _summary(res, "consensus", "p.json")
+    assert "\n" not in line and "placed no node" in line and "calibrate's nlpl" in line
+
+
 def test_window_and_truth_required():
     ds = make_mesh(k=6)
     assert T.window(ds, 3).n_epochs == 3 and T.window(ds, 100) is ds

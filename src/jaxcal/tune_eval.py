@@ -17,6 +17,11 @@ are better here), and the tuning benchmarks rank parameter sets with them.
   pairs and folds [m]. Lower is better. A node placed wrongly (mirrored, or pulled by an outlier
   ring) mispredicts the ranges it was not fitted to; the filter's own predictive likelihood only
   sees ranges it then also conditions on.
+- `consensus_reference` / `consensus_m`: a no-truth score against a pseudo-truth, the robust batch
+  fit (`jaxcal calibrate --method batch`, `estimate=map`: the most accurate method on these
+  networks, needing no truth). `consensus_m` is `rmse_m` with the batch fit's positions in place of
+  the truth (same frame, a0 excluded; nodes batch leaves unplaced excluded). Its error against
+  `rmse_m` is the batch fit's own error, which does not depend on the filter's parameters.
 """
 
 from __future__ import annotations
@@ -41,7 +46,10 @@ __all__ = [
     "heldout_split",
     "advance",
     "heldout_range_error",
+    "consensus_reference",
 ]
+
+CONSENSUS_BATCH = {"estimate": "map"}  # the batch fit of the consensus objective (the mode: cheaper)
 
 
 def _params(params) -> pgp.PGPParams:
@@ -59,19 +67,44 @@ def hard_run(dataset: MeshDataset, params, config: str | None, z_mask=None):
     return cfg, prm, out, order
 
 
-def hard_metrics(dataset: MeshDataset, params, config: str | None) -> dict[str, float]:
-    """{rmse_m, final_rmse_m, availability, nlpl} of one `calibrate` run (module docstring);
-    the RMSEs are NaN without ground truth."""
+def hard_metrics(dataset: MeshDataset, params, config: str | None, reference=None) -> dict[str, float]:
+    """{rmse_m, final_rmse_m, availability, nlpl[, consensus_m]} of one `calibrate` run (module
+    docstring); the RMSEs are NaN without ground truth. `reference`: (N, 2) positions in dataset
+    order and the configuration frame (`consensus_reference`), scored as `consensus_m`."""
     cfg, prm, out, order = hard_run(dataset, params, config)
     truth = jnp.asarray(truth_in_filter_order(dataset, config, order), out.estimate.dtype)
     est = out.estimate
     have = np.isfinite(np.asarray(est)).all(-1)[:, 1:]
-    return {
+    m = {
         "rmse_m": float(track_rmse(est, truth)),
         "final_rmse_m": float(track_rmse(est[-1:], truth)),
         "availability": float(have.mean()) if have.size else math.nan,
         "nlpl": float(neg_log_predictive(out, prm.sigma_r, prm.p_out, grid_span_m(cfg))),
     }
+    if reference is not None:
+        m["consensus_m"] = float(track_rmse(est, jnp.asarray(np.asarray(reference)[order], est.dtype)))
+    return m
+
+
+def consensus_reference(dataset: MeshDataset, config: str | None) -> np.ndarray:
+    """The consensus objective's pseudo-truth: the robust batch fit (`calibrate --method batch`,
+    `CONSENSUS_BATCH`) -> (N, 2) positions [m] in dataset order and the configuration frame (the
+    first two axes of a 3-D fit, as `truth_in_filter_order`); NaN rows for nodes it leaves unplaced.
+    Raises `JaxcalError` when it places no node besides a0."""
+    from jaxcal.errors import JaxcalError
+    from jaxcal.methods import calibrate
+
+    res = calibrate(dataset, "batch", CONSENSUS_BATCH, config)
+    a0, a1, a2 = dataset.config(config)
+    if res.frame_anchors() != (a0, a1, a2):
+        raise JaxcalError(f"{dataset.name}: the batch fit's frame {res.frame} is not the configuration's")
+    ids = list(res.ids)
+    ref = np.full((dataset.n_nodes, 2), np.nan)
+    for k, i in enumerate(dataset.node_ids):
+        ref[k] = res.position[ids.index(i), :2]
+    if np.isfinite(ref).all(-1).sum() < 2:
+        raise JaxcalError(f"{dataset.name}: the batch fit placed no node: no consensus reference")
+    return ref
 
 
 def pair_folds(n_nodes: int, n_folds: int = 2, seed: int = 0) -> list[np.ndarray]:

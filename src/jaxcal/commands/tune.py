@@ -1,4 +1,4 @@
-"""`jaxcal tune FILE --method pgp --objective evidence|truth -o PARAMS.json [--config NAME]
+"""`jaxcal tune FILE --method pgp --objective evidence|consensus|truth|nlpl -o PARAMS.json [--config NAME]
 [--tail K | --full] [--epochs K] [--cell M] [--max-steps S] [--set K=V ...]`: fit sigma_r, sigma_v
 and tau of the PGP filter by gradient (Optimistix BFGS), keeping them only if `calibrate` does better
 with them."""
@@ -12,10 +12,12 @@ def add_arguments(p) -> None:
     p.add_argument(
         "--objective",
         default="evidence",
-        choices=["evidence", "truth", "nlpl"],
+        choices=["evidence", "consensus", "truth", "nlpl"],
         help="evidence (default, no truth needed): predict the ranges of pairs held out from the "
-        "filter (cross-validation over pairs); truth: RMSE against the ground truth; nlpl: the "
-        "filter's own predictive likelihood of the ranges (ranks parameters poorly)",
+        "filter (cross-validation over pairs); consensus (no truth needed): RMSE against the robust "
+        "batch fit of the same recording (calibrate --method batch, estimate=map); truth: RMSE "
+        "against the ground truth; nlpl: the filter's own predictive likelihood of the ranges (ranks "
+        "parameters poorly)",
     )
     p.add_argument(
         "-o",
@@ -78,7 +80,7 @@ def _summary(res, objective: str, out) -> str:
         return s
 
     k = res.hard_key
-    unit = " m" if k in ("rmse_m", "heldout_m") else " nats/range"
+    unit = " m" if k in ("rmse_m", "heldout_m", "consensus_m") else " nats/range"
     hb, ha = res.hard_before[k], res.hard_after[k]
     st = res.settings
     grad = st["epochs"] - st.get("grad_from", 0)
@@ -94,8 +96,14 @@ def _summary(res, objective: str, out) -> str:
         f"{st['check_cell_m']:g} m)"
     )
     used = st.get("objective_used", objective)
-    name = objective if used == objective else f"{objective} (fewer than 5 nodes, no pair to hold out: {used})"
+    name = objective
+    if st.get("fallback_reason"):  # consensus without a batch fit: the held-out objective
+        name += f" ({st['fallback_reason']}: {used})"
+    elif used != objective:
+        name += f" (fewer than 5 nodes, no pair to hold out: {used})"
     head = f"tune {name}: {res.steps} steps ({res.message}; {on}); start {fmt(res.start)}"
+    if st.get("consensus_unplaced", -1) > 0:
+        head += f" (the batch fit left {st['consensus_unplaced']} nodes unplaced: not scored)"
     t = st.get("guard_gain_t", float("nan"))
     if res.accepted:
         why = f"better by t = {t:.2f} > {st.get('guard_t_min', 1.0):g}" if t == t else "better"
