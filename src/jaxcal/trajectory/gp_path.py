@@ -135,14 +135,14 @@ def path_nlml(theta: PathModel, x, s, r, mask, nu: float = 1.5, noise_scale=None
 
 
 def _penalty(h: Hyper, log_max_length, log_min_variance):
-    """Soft bounds (as `gp_anchor.hyper_penalty`): l at most the path length, s_f^2 above a floor."""
+    """Soft bounds (as `gp_anchor.hyper_penalty`): l at most a length, s_f^2 above a floor."""
     over = jnp.maximum(h.log_length - log_max_length, 0.0)
     under = jnp.maximum(log_min_variance - h.log_variance, 0.0)
     return 0.5 * (over / 0.25) ** 2 + 0.5 * (under / 0.25) ** 2
 
 
 @eqx.filter_jit
-def fit_path_all(x, r, mask, noise_scale, a0, b0, nu: float, max_steps: int, min_signal: float):
+def fit_path_all(x, r, mask, noise_scale, a0, b0, nu: float, max_steps: int, min_signal: float, max_length: float):
     """Every anchor (vmap): x (A, n, 3), r / mask / noise_scale (A, n), seeds a0 (A, 3), b0 (A,).
 
     Returns:
@@ -158,10 +158,14 @@ def fit_path_all(x, r, mask, noise_scale, a0, b0, nu: float, max_steps: int, min
         res = jnp.where(m, r - _cone(xc, a0 - origin) - b0, 0.0)
         var = jnp.maximum(jnp.sum(res**2 / w) / nv, 1e-6)
         init = PathModel(a0 - origin, b0, Hyper(jnp.log(0.05 * total), jnp.log(0.5 * var), jnp.log(0.5 * var)))
-        bounds = (jnp.log(total), jnp.log(min_signal * var))
+        # l at most max_length x the radius of the positions: a longer f is a slow trend over the whole
+        # path that trades with the anchor's cone (cuhksz: l = 160-270 m of arc length, anchors 0.3-0.7 m off)
+        radius = jnp.max(jnp.where(m, jnp.linalg.norm(xc, axis=-1), 0.0))
+        bounds = (jnp.log(jnp.clip(max_length * radius, 1e-2, total)), jnp.log(min_signal * var))
 
         def nlml(th):
-            return path_nlml(th, xc, s, r, m, nu, w) + _penalty(th.hyper, *bounds)
+            # the penalty per range: the likelihood of 1e4-1e5 ranges would overrule a fixed one
+            return path_nlml(th, xc, s, r, m, nu, w) + nv * _penalty(th.hyper, *bounds)
 
         sol = optx.minimise(
             lambda th, _: nlml(th) / nv, optx.BFGS(rtol=1e-7, atol=1e-7), init, max_steps=max_steps, throw=False
@@ -202,7 +206,7 @@ def calibrate_path(dataset, p, groups, info, planar) -> Result:
     args = tuple(jnp.asarray(v) for v in (pos, rng_m, mask, w, init_a, init_b))
 
     def fit(steps):
-        out = fit_path_all(*args, p.nu, steps, p.min_signal)
+        out = fit_path_all(*args, p.nu, steps, p.min_signal, p.max_length)
         return out, out[4]
 
     (est, cov, bias, hyp, _), codes, steps = S.retry_unconverged(fit, p.max_steps)
