@@ -62,7 +62,9 @@ near-planar trajectories (mean anchor errors of 4-8 m on the real recordings). T
 models r = |p - a| + b + f(p) + e with the anchor a as a mean parameter, seeded and bounded by
 `nls`, with a heavy-tailed (Cauchy-weighted) white noise e, on a stratified subsample (or, with
 `block`, every range under a block-diagonal covariance over stretches of consecutive ranges); see
-that module. `mean="constant"` keeps the paper's GP and its searches.
+that module. `mean="constant"` keeps the paper's GP and its searches. `model="path"`
+(`jaxcal.trajectory.gp_path`, an option): the GP as the noise model of every range, f a Matern GP along
+the path's arc length, its marginal likelihood by a Kalman filter in O(n), no fuse or bound.
 
 tinygp is not used: it would add a dependency for a dense GP with one kernel, and its Matern kernels
 are the half-integer ones only (no nu = 5/3).
