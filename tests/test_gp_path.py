@@ -85,7 +85,9 @@ def test_gp_path_noise_free_within_5cm():
     assert res.params["info_model"] == "path"
 
 
-@pytest.mark.parametrize("bad", [{"model": "dense"}, {"model": "path", "nu": 2.5}, {"model": "path", "mean": "constant"}])
+@pytest.mark.parametrize(
+    "bad", [{"model": "dense"}, {"model": "path", "nu": 2.5}, {"model": "path", "mean": "constant"}]
+)
 def test_gp_path_bad_settings_are_clear_errors(bad):
     with pytest.raises(JaxcalError, match="model"):
         calibrate(drone(), "gp", bad)

@@ -25,8 +25,9 @@ path as fewer. It is then widened, in every direction where it is smaller, to th
 (its cluster jackknife): where f finds no correlation it can model (cuhksz: the length-scale bound leaves f
 negligible) the GLS covariance counts 39000 ranges per anchor as independent (NEES/dof 1958 unwidened).
 The price, on the development seeds (even, simulated `small`): the wider covariance moved `finish`'s
-mirror-image decisions and made two of ten campaigns worse (0.68 -> 1.07 and 1.06 -> 1.52 x `nls`). A direction the path does not observe (the height from a flat route) keeps a
-huge variance and `finish` leaves it NaN; on a flat path the height is `nls`'s, as for `model=subsample`.
+mirror-image decisions and made two of ten campaigns worse (0.68 -> 1.07 and 1.06 -> 1.52 x `nls`).
+A direction the path does not observe (the height from a flat route) keeps a huge variance and `finish` leaves it NaN;
+on a flat path the height is `nls`'s, as for `model=subsample`.
 
 Fallback (a sanity check, no fuse, no bound): an anchor whose fitted position explains its ranges clearly
 worse than `nls`'s (`cone_spread` above `max_spread_ratio` x nls's) or whose fit is not finite keeps the
