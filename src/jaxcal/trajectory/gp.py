@@ -62,7 +62,9 @@ near-planar trajectories (mean anchor errors of 4-8 m on the real recordings). T
 models r = |p - a| + b + f(p) + e with the anchor a as a mean parameter, seeded and bounded by
 `nls`, with a heavy-tailed (Cauchy-weighted) white noise e, on a stratified subsample (or, with
 `block`, every range under a block-diagonal covariance over stretches of consecutive ranges); see
-that module. `mean="constant"` keeps the paper's GP and its searches.
+that module. `mean="constant"` keeps the paper's GP and its searches. `model="path"`
+(`jaxcal.trajectory.gp_path`, an option): the GP as the noise model of every range, f a Matern GP along
+the path's arc length, its marginal likelihood by a Kalman filter in O(n), no fuse or bound.
 
 tinygp is not used: it would add a dependency for a dense GP with one kernel, and its Matern kernels
 are the half-integer ones only (no nu = 5/3).
@@ -165,6 +167,10 @@ class GPParams(TrajectoryParams):
             covariance s^2 (J^T W J)^-1; -1: the covariance `nls` reports, over `cov_clusters` and
             `n_clusters` stretches). Either way the covariance is at least the one `nls` reports before the
             mirror check's profile (which then widens each method's about its own estimate).
+        model: `mean=anchor` only: `subsample` (default: the spatial GP on `n_train` ranges, fused with and
+            bounded by `nls`) or `path` (`jaxcal.trajectory.gp_path`: every range, r = |p - a| + b + f(s) + e
+            with f a Matern `nu` (0.5 or 1.5) GP along the path's arc length s, by a Kalman filter; no fuse
+            or bound, `nls` is the start and the fallback).
         block, max_ranges: `mean=anchor` only: the GP's covariance is block-diagonal over blocks
             of `block` consecutive ranges, on at most `max_ranges` ranges per anchor (evenly thinned
             in time); `block=0` (default): one dense GP on the stratified `n_train` subsample.
@@ -196,6 +202,7 @@ class GPParams(TrajectoryParams):
     block: int = 0
     max_ranges: int = 4096
     bound_clusters: int = 0
+    model: str = "subsample"
 
 
 def fit_hyper(x, y, mask, init: Hyper, nu: float = 1.5, jitter: float = 1e-6, max_steps: int = 200):
@@ -449,6 +456,10 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
         raise JaxcalError(f"parameter search: expected cuboid or gradient, got {p.search!r}")
     if p.mean not in ("constant", "anchor"):
         raise JaxcalError(f"parameter mean: expected constant or anchor, got {p.mean!r}")
+    if p.model not in ("subsample", "path"):
+        raise JaxcalError(f"parameter model: expected subsample or path, got {p.model!r}")
+    if p.model == "path" and (p.mean != "anchor" or p.nu not in (0.5, 1.5)):
+        raise JaxcalError(f"parameter model=path needs mean=anchor and nu 0.5 or 1.5, got {p.mean!r}, {p.nu}")
     matern(jnp.zeros(1), 1.0, 1.0, p.nu)  # validates nu
     if p.grid < 2 or p.top_k < 1 or p.top_k > p.grid**2 or not 0.0 < p.shrink < 1.0 or p.tol_m <= 0:
         raise JaxcalError("parameters grid >= 2, 1 <= top_k <= grid^2, 0 < shrink < 1, tol_m > 0 required")
@@ -474,8 +485,12 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
     )
     if p.mean == "anchor":
         from jaxcal.trajectory.gp_anchor import calibrate_anchor_mean
+        from jaxcal.trajectory.gp_path import calibrate_path
 
-        out = calibrate_anchor_mean(dataset, p, groups, info, n, planar)
+        if p.model == "path":
+            out = calibrate_path(dataset, p, groups, info, planar)
+        else:
+            out = calibrate_anchor_mean(dataset, p, groups, info, n, planar)
         if progress is not None:
             progress(1)
         return out
