@@ -386,7 +386,4 @@ def test_site_wider_than_radio_range_runs_as_calibrate(rng, caplog):
         np.testing.assert_allclose(got["final_rmse_m"][r], ev["final_rmse_m"], atol=1e-6)
         np.testing.assert_allclose(got["rmse_m"][r], ev["rmse_m"], atol=1e-6)
         assert np.isnan(got["nlpl"][r])
-        # not the global grid's run: the same parameters on one grid around a0 give other numbers
-        glob = evaluate_mesh(pgp.calibrate(wide, {**p, "grid_mode": "global", "extent_m": 100.0}), wide)
-        assert abs(glob["final_rmse_m"] - got["final_rmse_m"][r]) > 1e-9
     assert np.isfinite(got["nlpl"][pl.dataset_of == 1]).all()
