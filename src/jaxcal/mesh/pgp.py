@@ -1211,7 +1211,7 @@ def run_pgp(
     if params.grid_mode != "global":
         local = _local_setup(dataset, params, b, mode, bool(len(snapshot_epochs)))
     if params.bias == "network" or (params.bias == "auto" and local is not None):
-        return _run_offset(dataset, params, config, mode, snapshot_epochs, progress, posterior)
+        return _run_offset(dataset, params, config, mode, snapshot_epochs, progress, posterior, (a, b, local))
     if local is not None:
         return _run_local(dataset, params, a, b, local, progress, posterior)
     cfg, prm, inp, logpost0, order = prepare(dataset, params, config, mode, snapshot_epochs, b)
@@ -1267,10 +1267,14 @@ def global_grid_only(tool: str, site: str) -> JaxcalError:
     )
 
 
-def _run_offset(dataset: MeshDataset, params: PGPParams, config, mode, snapshot_epochs, progress, posterior: bool):
+def _run_offset(
+    dataset: MeshDataset, params: PGPParams, config, mode, snapshot_epochs, progress, posterior: bool, where
+):
     """`run_pgp` with `bias` "network" (or "auto" on node-local grids): a first run on the first
     `OFFSET_EPOCHS` epochs, the offset fitted to its positions (`range_offset.fit_offset`), then the run
-    on every range minus the offset. The result's `params` are `params` (a rerun fits the same offset)."""
+    on every range minus the offset. The result's `params` are `params` (a rerun fits the same offset).
+    `where`: (a, b, `_local_setup` or None). On node-local grids both runs take the lattice, wide side
+    and neighbour lists of the recording's own ranges (one compilation for both)."""
     import logging
 
     from jaxcal.mesh.range_offset import fit_offset, pair_medians
@@ -1280,12 +1284,21 @@ def _run_offset(dataset: MeshDataset, params: PGPParams, config, mode, snapshot_
     r = np.asarray(dataset.range)
     k = min(OFFSET_EPOCHS, dataset.n_epochs)
     short = dataclasses.replace(dataset, time=np.asarray(dataset.time)[:k], range=r[:k], fp_rssi=None, rx_rssi=None)
+    a, b, local = where
+
+    def run(ds, z_run, prog, post, snaps=()):
+        if local is None:
+            return run_pgp(ds, plain, config, mode=mode, snapshot_epochs=snaps, progress=prog, posterior=post)
+        order, z, dt, lattice, wide = local
+        return _run_local(ds, plain, a, b, (order, z_run, dt[: z_run.shape[0]], lattice, wide), prog, post, setup_z=z)
+
     level = log.level
     log.setLevel(logging.ERROR)  # the first run's warnings (unplaced nodes...) are the second run's to give
     try:
-        first, _ = run_pgp(short, plain, config, mode=mode, posterior=False)
+        first, _ = run(short, None if local is None else local[1][:k], None, False)
     finally:
         log.setLevel(level)
+    z_run = None if local is None else local[1]
     c, pairs = fit_offset(np.asarray(first.position), pair_medians(symmetric_ranges(r)), params.sigma_r)
     if np.isfinite(c):
         log.info(
@@ -1296,11 +1309,10 @@ def _run_offset(dataset: MeshDataset, params: PGPParams, config, mode, snapshot_
         )
         shifted = np.where(np.isfinite(r), np.maximum(r - c, 0.0), r)
         dataset = dataclasses.replace(dataset, range=shifted)
+        z_run = None if z_run is None else np.where(np.isfinite(z_run), np.maximum(z_run - c, 0.0), z_run)
     else:
         log.warning("pgp: range offset not fitted (too few pairs between placed nodes): ranges taken as unbiased")
-    res, info = run_pgp(
-        dataset, plain, config, mode=mode, snapshot_epochs=snapshot_epochs, progress=progress, posterior=posterior
-    )
+    res, info = run(dataset, z_run, progress, posterior, snapshot_epochs)
     res = dataclasses.replace(res, params=as_dict(params))
     return res, dataclasses.replace(info, offset_m=c if np.isfinite(c) else float("nan"))
 
@@ -1348,13 +1360,14 @@ def _local_setup(dataset: MeshDataset, params: PGPParams, anchors, mode: str, sn
     return order, z, dt, lattice, wide
 
 
-def _run_local(dataset: MeshDataset, params: PGPParams, a, b, local, progress, posterior: bool):
+def _run_local(dataset: MeshDataset, params: PGPParams, a, b, local, progress, posterior: bool, setup_z=None):
     """`run_pgp` on node-local grids (`local.py`): the same `Result` and `PGPInfo` (the lattice's axis,
-    the posteriors placed on it when `posterior`; no snapshots)."""
+    the posteriors placed on it when `posterior`; no snapshots). `setup_z`: the ranges that size the
+    neighbour lists (default: `local`'s)."""
     order, z, dt, lattice, wide = local
     n = dataset.n_nodes
     allowed, need = _neighbour_sets(params, n)
-    cfg, kind, log_cells, nbrs = L.setup(params, n, z, allowed, lattice, wide)
+    cfg, kind, log_cells, nbrs = L.setup(params, n, z if setup_z is None else setup_z, allowed, lattice, wide)
     ftype = jnp.result_type(float)
     prm = FilterParams(*(jnp.asarray(getattr(params, f), ftype) for f in NUMERIC))
     st, out, cov = L.run_local(
