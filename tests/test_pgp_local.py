@@ -114,3 +114,39 @@ def test_localise_m_is_validated():
         pgp.validate_params(PGPParams(localise_m=-1.0))
     with pytest.raises(Exception, match="grid_mode"):
         pgp.validate_params(PGPParams(grid_mode="tiles"))
+
+
+def test_tune_refuses_a_site_calibrate_runs_on_node_local_grids(rng, tmp_path):
+    """tune runs the global grid only: on a site where calibrate runs node-local grids it refuses in
+    one line (exit 2), never tuning another filter than calibrate's; grid_mode=global is the way out."""
+    from conftest import assert_one_line_error, run_cli
+    from jaxcal import tune as T
+    from jaxcal.errors import JaxcalError
+    from jaxcal.io import hdf5
+
+    ds = site(rng)
+    assert pgp.uses_local(ds, SMALL) and not pgp.uses_local(ds, dict(SMALL, grid_mode="global"))
+    with pytest.raises(JaxcalError, match="node-local"):
+        T.tune(ds, SMALL, None)
+    path = tmp_path / "wide.h5"
+    hdf5.write(path, ds)
+    sets = [a for k, v in SMALL.items() for a in ("--set", f"{k}={v}")]
+    p = run_cli("tune", path, "-o", tmp_path / "p.json", *sets)
+    assert_one_line_error(p, "grid_mode=global")
+    assert not (tmp_path / "p.json").exists()
+
+
+def test_live_calibration_refuses_a_site_calibrate_runs_on_node_local_grids(tmp_path):
+    """Live calibration runs the global grid only: where calibrate would run node-local grids it stops
+    with one line (the recording goes on), never running another filter than calibrate's."""
+    from jaxcal.live import LiveCalibrator
+    from test_recorder import live_capture, replay
+
+    cap = tmp_path / "mesh.bin"
+    cap.write_bytes(live_capture(200))
+    live = LiveCalibrator(params={"local_m": 2.0}, stream=None)  # node-local grids narrower than the site
+    rec = replay(cap, "nlink", {"epoch_s": 0.1}, on_flush=live.guarded_update)
+    live.guarded_update(rec, final=True)
+    assert live.pgp is None and live.error is not None
+    assert "node-local" in live.error and "grid_mode=global" in live.error and "\n" not in live.error
+    assert rec.build_dataset().n_epochs == 40

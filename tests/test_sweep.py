@@ -351,3 +351,39 @@ def test_two_processes_equal_one(reference, tmp_path):
     # only process 0 writes and reports (gloo prints its own connection line on stdout)
     assert '"processes": 2' in outs[0][0] and "{" not in outs[1][0]
     _same(_metrics(out)[1], ref)
+
+
+def test_site_wider_than_radio_range_runs_as_calibrate(rng, caplog):
+    """A dataset that `calibrate --method pgp` runs on node-local grids (issue #26): every sweep cell
+    is that calibrate run (node-local grids, fitted range offset), not the global grid's."""
+    import logging
+
+    from jaxcal.mesh import pgp
+    from test_pgp_local import SMALL, site
+
+    wide = site(rng)
+    small = simulate("small", 3)
+    doc = {
+        "params": SMALL,
+        "grid": {"sigma_r": [0.3, 0.6]},
+        "scenarios": [{"file": "wide.h5"}, {"file": "small.h5", "config": "conf1"}],
+    }
+    spec = S.parse_spec(doc)
+    pl = S.plan(spec)
+    with caplog.at_level(logging.WARNING, logger="jaxcal"):
+        groups, group_of = S.build_groups([(wide, None), (small, "conf1")], spec)
+    assert isinstance(groups[group_of[0]], S.LocalGroup) and not isinstance(groups[group_of[1]], S.LocalGroup)
+    assert len([m for m in caplog.messages if "node-local" in m and "nlpl" in m]) == 1
+    got = {k: np.full(pl.n_runs, np.nan) for k in S.METRICS}
+    for idx, vals in S.execute(spec, pl, groups, group_of, np.zeros(pl.n_runs, bool)):
+        for k, v in vals.items():
+            got[k][idx] = v
+    assert np.isfinite(got["final_rmse_m"]).all()
+    for r in np.flatnonzero(pl.dataset_of == 0):
+        p = {**SMALL, "sigma_r": pl.values["sigma_r"][r]}
+        assert pgp.uses_local(wide, p)
+        ev = evaluate_mesh(pgp.calibrate(wide, p), wide)
+        np.testing.assert_allclose(got["final_rmse_m"][r], ev["final_rmse_m"], atol=1e-6)
+        np.testing.assert_allclose(got["rmse_m"][r], ev["rmse_m"], atol=1e-6)
+        assert np.isnan(got["nlpl"][r])
+    assert np.isfinite(got["nlpl"][pl.dataset_of == 1]).all()

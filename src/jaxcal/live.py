@@ -223,6 +223,8 @@ class LiveCalibrator:
         items = list(self.epochs)
         z = pgp.symmetric_ranges(self._dense(items, self.n))
         radius = G.extent_radius(z, a[0], self.params.margin_m, self.params.extent_m)
+        if pgp.local_site(self.params, z, a):  # calibrate would run node-local grids: never run another filter
+            raise pgp.global_grid_only("live calibration", "live")
         self.pgp = pgp.start(self.n, self.params, anchors=a, radius_m=radius)
         self.radius = radius
         self._feed(items, final)

@@ -34,6 +34,14 @@ Execution (`SweepSpec.execution`, `jaxcal sweep --execution`), chosen per backen
   branches of every cond). Same metrics as "sequential" up to rounding;
   `benchmarks/sweep_batching.py` measures runs/s against batch size.
 
+Large sites (issue #26): a dataset that `calibrate --method pgp` runs on node-local grids
+(`pgp.uses_local`: the site wider than one node-local grid, `grid_mode="auto"`) is not put on a common
+grid: each of its runs is one `pgp.run_pgp`, exactly as `calibrate` runs it (node-local grids, the
+fitted range offset of `bias`), one after the other whatever the execution (every process of a
+multi-process sweep computes them all). Their `nlpl` is NaN (the node-local grids normalise each
+node's evidence over its own wide grid only, so it is not the global grid's figure); one warning line
+says so.
+
 Metrics per run (`METRICS`, all in the configuration frame, a0 excluded): `rmse_m` (every localised
 epoch estimate, as `jaxcal evaluate`), `final_rmse_m` (the final positions), `availability` (share
 of (epoch, node) estimates that exist), `localised` (nodes with a final estimate, of N - 1) and
@@ -79,7 +87,9 @@ __all__ = [
     "Plan",
     "plan",
     "Group",
+    "LocalGroup",
     "build_groups",
+    "local_metrics",
     "run_metrics",
     "reduce_metrics",
     "run_single",
@@ -259,8 +269,37 @@ class Group(eqx.Module):
     span_m: float = eqx.field(static=True)
 
 
-def build_groups(datasets: Sequence[tuple[MeshDataset, str | None]], spec: SweepSpec) -> tuple[list[Group], np.ndarray]:
-    """Prepare every dataset and group those with equal shapes on a common grid.
+@dataclasses.dataclass(frozen=True)
+class LocalGroup:
+    """Datasets that `calibrate` runs on node-local grids (`pgp.uses_local`): each run is one
+    `pgp.run_pgp` (`local_metrics`), never a common grid."""
+
+    members: tuple[int, ...]  # indices into Plan.datasets
+    datasets: tuple[tuple[MeshDataset, str | None], ...]  # (window of the dataset, config) per member
+    params: pgp.PGPParams
+
+
+def local_metrics(dataset: MeshDataset, config: str | None, params: pgp.PGPParams, method: str) -> dict[str, float]:
+    """The sweep's metrics of one `pgp.run_pgp` as `calibrate` runs it (node-local grids); `nlpl` NaN."""
+    res, _ = pgp.run_pgp(dataset, params, config, mode=method, posterior=False)
+    order = pgp._node_order(dataset.n_nodes, dataset.config(config))
+    est = jnp.asarray(np.asarray(res.track_position)[:, order])
+    truth = jnp.asarray(truth_in_filter_order(dataset, config, order), est.dtype)
+    have = np.isfinite(np.asarray(est)).all(-1)[:, 1:]
+    return {
+        "rmse_m": float(track_rmse(est, truth)),
+        "final_rmse_m": float(final_rmse(est, truth)),
+        "availability": float(have.mean()) if have.size else float("nan"),
+        "localised": float(have[-1].sum()) if have.size else 0.0,
+        "nlpl": float("nan"),
+    }
+
+
+def build_groups(
+    datasets: Sequence[tuple[MeshDataset, str | None]], spec: SweepSpec
+) -> tuple[list[Group | LocalGroup], np.ndarray]:
+    """Prepare every dataset and group those with equal shapes on a common grid (those that
+    `calibrate` runs on node-local grids: one `LocalGroup`).
 
     Args:
         datasets: one (dataset, config name) per `Plan.datasets` entry.
@@ -270,18 +309,34 @@ def build_groups(datasets: Sequence[tuple[MeshDataset, str | None]], spec: Sweep
         (groups, group_of): `group_of[d]` is the group of dataset d.
     """
     params = with_overrides(pgp.PGPParams(), dict(spec.params))
-    prepared = []
-    for ds, config in datasets:
+    prepared: list = []
+    local: list[int] = []
+    for d, (ds, config) in enumerate(datasets):
         if ds.n_epochs == 0:
             raise JaxcalError(f"{ds.name}: no epochs")
         w = window(ds, spec.epochs)
+        if pgp.uses_local(w, params, config, spec.method):
+            local.append(d)
+            prepared.append((w, config))
+            continue
         cfg, prm, inp, lp0, order = pgp.prepare(w, params, config, spec.method)
         prepared.append((w, config, cfg, prm, inp, order))
     keys: dict[tuple[int, int], list[int]] = {}
     for d, (w, *_rest) in enumerate(prepared):
-        keys.setdefault((w.n_nodes, w.n_epochs), []).append(d)
+        if d not in local:
+            keys.setdefault((w.n_nodes, w.n_epochs), []).append(d)
     groups: list = []
     group_of = np.zeros(len(prepared), np.int64)
+    if local:
+        import logging
+
+        group_of[local] = len(groups)
+        groups.append(LocalGroup(tuple(local), tuple(prepared[d] for d in local), params))
+        logging.getLogger("jaxcal").warning(
+            "sweep: %d dataset(s) wider than one node-local grid run as calibrate runs them (node-local "
+            "grids, one run at a time): their nlpl is NaN",
+            len(local),
+        )
     for members in keys.values():
         grid = max((prepared[d][2].grid for d in members), key=lambda g: g.n_half)
         cfg = dataclasses.replace(prepared[members[0]][2], grid=grid)
@@ -424,6 +479,9 @@ def execute(
     run_group = group_of[pl.dataset_of]
     for gi, g in enumerate(groups):
         runs = np.flatnonzero(run_group == gi)
+        if isinstance(g, LocalGroup):
+            yield from _run_local(spec, pl, g, runs[~done[runs]], progress)
+            continue
         local = {d: k for k, d in enumerate(g.members)}
         dtype = np.asarray(g.base.sigma_r).dtype
         inp_np = jax.tree.map(np.asarray, g.inp)
@@ -455,6 +513,18 @@ def execute(
                     progress(int(todo.size))
             yield todo, {k: np.asarray(v, np.float64)[: todo.size] for k, v in out.items()}
         release_if_crowded()  # many groups (grid shapes) compile many programs: stay below the map limit
+
+
+def _run_local(spec: SweepSpec, pl: Plan, g: LocalGroup, todo: np.ndarray, progress):
+    """The runs of a `LocalGroup`, one `local_metrics` each, yielded one by one."""
+    where = {d: k for k, d in enumerate(g.members)}
+    for r in todo:
+        ds, config = g.datasets[where[int(pl.dataset_of[r])]]
+        params = dataclasses.replace(g.params, **{k: float(v[r]) for k, v in pl.values.items()})
+        m = local_metrics(ds, config, params, spec.method)
+        if progress is not None:
+            progress(1)
+        yield np.asarray([r]), {k: np.asarray([m[k]], np.float64) for k in METRICS}
 
 
 def _per_device(mesh, per: int, work) -> dict:

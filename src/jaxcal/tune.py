@@ -533,6 +533,8 @@ def tune(
         params = with_overrides(pgp.PGPParams(), params)
     if dataset.n_epochs == 0:
         raise JaxcalError(f"{dataset.name}: no epochs to tune on")
+    if pgp.uses_local(dataset, params, config):  # calibrate runs node-local grids there, tuning the global grid
+        raise pgp.global_grid_only("tune", dataset.name)
     surrogate = params if cell_m is None else dataclasses.replace(params, cell_m=float(cell_m))
     ds = window(dataset, epochs)
     mix = params.range_model == "mixture"

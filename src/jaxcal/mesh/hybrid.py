@@ -80,7 +80,9 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
     empty = identify.undetermined_frame_result(dataset, anchors, "pgp+batch", b.dim)
     if empty is not None:  # the ranges do not fix the frame: nothing to fit (one warning line)
         return empty
-    res_pgp, _ = pgp.run_pgp(dataset, p_over, config)
+    # the track and final positions only: PGP's posterior grids (with node-local grids an (N, n, n)
+    # array over the whole site) are never read here
+    res_pgp, _ = pgp.run_pgp(dataset, p_over, config, posterior=False)
     sol = batch.solve(dataset.range, anchors, b, dataset.node_ids, extra_starts=res_pgp.position[None])
     batch.warn_if_unmixed(sol, b)
     outcome = batch.check_solver(sol, b, "pgp+batch")
