@@ -392,8 +392,64 @@ def test_tune_with_the_consensus_objective(monkeypatch):
     assert res.after <= res.before and res.tuned["sigma_r"] != start["sigma_r"]
     want = E.hard_metrics(ds, start, None, ref)
     assert {k: res.hard_before[k] for k in want} == want
-    assert res.accepted == (res.hard_after["consensus_m"] < res.hard_before["consensus_m"])
+    better = res.hard_after["consensus_m"] < res.hard_before["consensus_m"]
+    t = res.settings["guard_gain_t"]  # the per-node paired t (NaN when the optimiser did not move)
+    assert res.accepted == (better and (np.isnan(t) or t > T.GUARD_T))
     assert res.params == (res.tuned if res.accepted else res.start)
+
+
+def test_node_sq_errors_against_a_loop(rng):
+    """Per node: mean over its localised epochs of the squared distance from the reference; a0,
+    nodes never localised and nodes without a reference are NaN. In `hard_metrics_nodes` the same
+    figures of calibrate's run, in dataset order."""
+    est = rng.normal(0, 1, (7, 5, 2))
+    est[2, 3] = np.nan
+    est[:, 4] = np.nan  # never localised
+    ref = rng.normal(0, 1, (5, 2))
+    ref[2] = np.nan  # no reference
+    want = [np.nan] * 5
+    for n in (1, 3):
+        want[n] = np.mean([np.sum((est[k, n] - ref[n]) ** 2) for k in range(7) if np.isfinite(est[k, n]).all()])
+    np.testing.assert_allclose(E.node_sq_errors(est, ref), want, rtol=1e-12)
+    ds = make_mesh(n=6, k=5, seed=7)
+    true = T.truth_in_filter_order(ds, None, np.arange(ds.n_nodes))
+    ref = true + rng.normal(0, 0.3, true.shape)
+    m, nodes = E.hard_metrics_nodes(ds, SMALL, None, ref)
+    _, _, out, order = E.hard_run(ds, SMALL, None)
+    np.testing.assert_allclose(nodes[order], E.node_sq_errors(np.asarray(out.estimate), ref[order]), rtol=1e-12)
+    assert m == E.hard_metrics(ds, SMALL, None, ref) and E.hard_metrics_nodes(ds, SMALL, None)[1] is None
+
+
+@pytest.mark.parametrize("gain, accepted", [(0.001, False), (0.2, True)])
+def test_consensus_guard_needs_a_gain_beyond_the_nodes_scatter(monkeypatch, rng, gain, accepted):
+    """The evidence guard's rule on the consensus figure: the tuned values lower `consensus_m` in
+    both cases; per-node gains that are mixed (t <= 1) keep the start, a clear gain is written, and
+    the one-line summary says the t."""
+    from jaxcal.commands.tune import _summary
+
+    ds = make_mesh(n=7, k=6, seed=3)
+    ref = T.truth_in_filter_order(ds, None, np.arange(ds.n_nodes))
+    base = np.concatenate([[np.nan], rng.uniform(0.5, 1.0, 6)])  # a0 is not scored
+    noise = np.concatenate([[0.0], rng.normal(0.0, 0.05, 6)])
+    noise[1:] -= noise[1:].mean()  # the mean gain is exactly `gain`; its scatter is the noise's
+
+    def nodes_of(dataset, params, config, reference=None):
+        moved = float(np.asarray(params.sigma_r)) != pytest.approx(SMALL["sigma_r"])
+        nodes = base - (gain + noise if moved else 0.0)
+        return {"rmse_m": 0.3, "nlpl": 2.0, "consensus_m": float(np.sqrt(np.nanmean(nodes)))}, nodes
+
+    monkeypatch.setattr(E, "consensus_reference", lambda *a: ref)
+    monkeypatch.setattr(E, "hard_metrics_nodes", nodes_of)
+    monkeypatch.setattr(T, "_bfgs", lambda theta0, prob, *a, **k: (theta0.at[0].add(0.1), 1, True, "ok", 1.0, 0.5))
+    res = T.tune(ds, SMALL, None, objective_name="consensus", tau_temp=0.1)
+    assert res.hard_key == "consensus_m" and res.hard_after["consensus_m"] < res.hard_before["consensus_m"]
+    t = res.settings["guard_gain_t"]
+    assert t == pytest.approx(E.paired_gain_t(base, base - gain - noise), rel=1e-12)
+    assert (t > T.GUARD_T) == accepted and res.accepted == accepted
+    assert res.params == (res.tuned if accepted else res.start)
+    line = _summary(res, "consensus", "p.json")
+    assert "\n" not in line and f"t = {t:.2f}" in line
+    assert ("tuned values written" if accepted else "within the nodes' scatter") in line
 
 
 def test_consensus_without_a_batch_fit_falls_back_and_says_so(monkeypatch):

@@ -22,6 +22,8 @@ are better here), and the tuning benchmarks rank parameter sets with them.
   networks, needing no truth). `consensus_m` is `rmse_m` with the batch fit's positions in place of
   the truth (same frame, a0 excluded; nodes batch leaves unplaced excluded). Its error against
   `rmse_m` is the batch fit's own error, which does not depend on the filter's parameters.
+  `node_sq_errors` splits it by node (mean squared distance from the fit per node), for the
+  guard's paired test of two runs (`paired_gain_t`, as the held-out pair errors).
 """
 
 from __future__ import annotations
@@ -40,6 +42,8 @@ from jaxcal.tune_metrics import grid_span_m, neg_log_predictive, track_rmse, tru
 __all__ = [
     "hard_run",
     "hard_metrics",
+    "hard_metrics_nodes",
+    "node_sq_errors",
     "pair_folds",
     "heldout_pair_errors",
     "fold_pair_errors",
@@ -71,6 +75,12 @@ def hard_metrics(dataset: MeshDataset, params, config: str | None, reference=Non
     """{rmse_m, final_rmse_m, availability, nlpl[, consensus_m]} of one `calibrate` run (module
     docstring); the RMSEs are NaN without ground truth. `reference`: (N, 2) positions in dataset
     order and the configuration frame (`consensus_reference`), scored as `consensus_m`."""
+    return hard_metrics_nodes(dataset, params, config, reference)[0]
+
+
+def hard_metrics_nodes(dataset: MeshDataset, params, config: str | None, reference=None):
+    """`hard_metrics` and, with a `reference`, the per-node squared distances behind `consensus_m`
+    (`node_sq_errors`, dataset order; None without a reference) of the same run."""
     cfg, prm, out, order = hard_run(dataset, params, config)
     truth = jnp.asarray(truth_in_filter_order(dataset, config, order), out.estimate.dtype)
     est = out.estimate
@@ -81,9 +91,28 @@ def hard_metrics(dataset: MeshDataset, params, config: str | None, reference=Non
         "availability": float(have.mean()) if have.size else math.nan,
         "nlpl": float(neg_log_predictive(out, prm.sigma_r, prm.p_out, grid_span_m(cfg))),
     }
+    nodes = None
     if reference is not None:
-        m["consensus_m"] = float(track_rmse(est, jnp.asarray(np.asarray(reference)[order], est.dtype)))
-    return m
+        ref = np.asarray(reference)[order]
+        m["consensus_m"] = float(track_rmse(est, jnp.asarray(ref, est.dtype)))
+        nodes = np.full(len(order), np.nan)
+        nodes[order] = node_sq_errors(np.asarray(est), ref)
+    return m, nodes
+
+
+def node_sq_errors(estimate: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Per node, the mean over its localised epochs of the squared distance of `estimate`
+    (K, N, 2) from `reference` (N, 2) [m^2], same node order; NaN for node 0 (a0, not scored as in
+    `track_rmse`), nodes never localised and nodes without a reference position. The guard's
+    paired test (`paired_gain_t`) compares two runs node by node with these."""
+    est = np.asarray(estimate, dtype=np.float64)
+    ref = np.asarray(reference, dtype=np.float64)
+    d2 = np.sum((est - ref[None]) ** 2, axis=-1)  # (K, N); NaN where either is missing
+    ok = np.isfinite(d2)
+    cnt = ok.sum(0)
+    out = np.where(cnt > 0, np.where(ok, d2, 0.0).sum(0) / np.maximum(cnt, 1), np.nan)
+    out[:1] = np.nan
+    return out
 
 
 def consensus_reference(dataset: MeshDataset, config: str | None) -> np.ndarray:
@@ -203,8 +232,9 @@ def mean_pair_error(scores: np.ndarray) -> float:
 
 
 def paired_gain_t(before: np.ndarray, after: np.ndarray) -> float:
-    """t statistic of the per-pair gain `before - after` (pairs finite in both): its mean over its
-    standard error. NaN with fewer than 2 such pairs; +inf when every gain is equal and positive."""
+    """t statistic of the per-pair (or per-node, `node_sq_errors`) gain `before - after` (pairs
+    finite in both): its mean over its standard error. NaN with fewer than 2 such pairs; +inf when
+    every gain is equal and positive."""
     ok = np.isfinite(before) & np.isfinite(after)
     d = np.asarray(before, dtype=np.float64)[ok] - np.asarray(after, dtype=np.float64)[ok]
     if d.size < 2:

@@ -113,15 +113,17 @@ def _summary(res, objective: str, out) -> str:
         )
     if res.tuned == res.start:
         return f"{head}; the optimiser did not move: calibrate's {k} {hb:.4g}{unit}; kept the start values -> {out}"
-    if k == "heldout_m" and ha < hb and t == t:  # better on average, but within the pairs' scatter
+    units = {"heldout_m": "held-out pairs'", "consensus_m": "nodes'"}
+    if k in units and ha < hb and t == t:  # better on average, but within the pairs' / nodes' scatter
         return (
             f"{head}; tuned {fmt(res.tuned)}: calibrate's {k} {hb:.4g} -> {ha:.4g}{unit} is within "
-            f"the held-out pairs' scatter (t = {t:.2f} <= {st.get('guard_t_min', 1.0):g}): kept the "
+            f"the {units[k]} scatter (t = {t:.2f} <= {st.get('guard_t_min', 1.0):g}): kept the "
             f"start values -> {out}"
         )
+    paired = f", t = {t:.2f}" if k in units and t == t else ""  # the guard's paired t, when it ran
     return (
         f"{head}; tuned {fmt(res.tuned)} not better under calibrate's {k} ({hb:.4g} -> "
-        f"{ha:.4g}{unit}): kept the start values -> {out}"
+        f"{ha:.4g}{unit}{paired}): kept the start values -> {out}"
     )
 
 
