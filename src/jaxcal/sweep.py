@@ -54,6 +54,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -447,7 +448,7 @@ def _gather(tree) -> dict:
 def execute(
     spec: SweepSpec,
     pl: Plan,
-    groups: Sequence[Group],
+    groups: Sequence[Group | LocalGroup],
     group_of: np.ndarray,
     done: np.ndarray,
     devices: Sequence | None = None,
@@ -520,7 +521,8 @@ def _run_local(spec: SweepSpec, pl: Plan, g: LocalGroup, todo: np.ndarray, progr
     where = {d: k for k, d in enumerate(g.members)}
     for r in todo:
         ds, config = g.datasets[where[int(pl.dataset_of[r])]]
-        params = dataclasses.replace(g.params, **{k: float(v[r]) for k, v in pl.values.items()})
+        values: dict[str, Any] = {k: float(v[r]) for k, v in pl.values.items()}
+        params = dataclasses.replace(g.params, **values)
         m = local_metrics(ds, config, params, spec.method)
         if progress is not None:
             progress(1)

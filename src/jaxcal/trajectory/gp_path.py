@@ -218,14 +218,14 @@ def calibrate_path(dataset, p, groups, info, planar) -> Result:
     spread_nls = cone_spread(pos, rng_m, mask, a0)
     bad = ~np.isfinite(est).all(axis=1) | ~np.isfinite(cov).all(axis=(1, 2))
     fallback = seeded & (bad | ((p.max_spread_ratio > 0) & (spread_gp > p.max_spread_ratio * spread_nls)))
-    for a in np.flatnonzero(fallback):
-        est[a], cov[a], bias[a] = a0[a], cov0[a], b0[a]
+    for k in np.flatnonzero(fallback):
+        est[k], cov[k], bias[k] = a0[k], cov0[k], b0[k]
     if fallback.any():
         log.warning("gp: %d anchor(s) kept the nls answer (path GP fit worse than nls's)", int(fallback.sum()))
-    for a in np.flatnonzero(seeded & ~fallback):
-        if planar[a]:  # a flat path does not observe the height: the GP does not move it either
-            est[a, 2] = a0[a, 2]
-        cov[a] = widen_covariance(cov[a], cov0[a])
+    for k in np.flatnonzero(seeded & ~fallback):
+        if planar[k]:  # a flat path does not observe the height: the GP does not move it either
+            est[k, 2] = a0[k, 2]
+        cov[k] = widen_covariance(cov[k], cov0[k])
     info = dict(
         info,
         model="path",
