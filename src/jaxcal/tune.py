@@ -393,7 +393,7 @@ class TuneResult:
         before, after: the gradient objective (soft cut, on the tuning data) at start and end.
         hard_before, hard_after: `check` of the start and of the tuned values: the filter exactly
             as `calibrate` runs it (hard cut, its cell size and likelihood path, the whole dataset)
-            {rmse_m, final_rmse_m, availability, nlpl[, heldout_m][, consensus_m]}. When the held-out guard
+            {rmse_m, final_rmse_m, availability, nlpl; heldout_m, consensus_m where computed}. When the held-out guard
             keeps the start, `hard_after` is {heldout_m} alone (the plain run of values that are
             not written is skipped).
         accepted: whether the tuned values are better than the start under the guard's figure
