@@ -65,6 +65,8 @@ models r = |p - a| + b + f(p) + e with the anchor a as a mean parameter, seeded 
 that module. `mean="constant"` keeps the paper's GP and its searches. `model="path"`
 (`jaxcal.trajectory.gp_path`, an option): the GP as the noise model of every range, f a Matern GP along
 the path's arc length, its marginal likelihood by a Kalman filter in O(n), no fuse or bound.
+`model="space"` (`jaxcal.trajectory.gp_space`, an option): the same over the horizontal position, f a
+Matern GP on a Hilbert-space basis (O(n m^2) once, then O(n m) per step), for routes driven in laps.
 
 tinygp is not used: it would add a dependency for a dense GP with one kernel, and its Matern kernels
 are the half-integer ones only (no nu = 5/3).
@@ -170,7 +172,11 @@ class GPParams(TrajectoryParams):
         model: `mean=anchor` only: `subsample` (default: the spatial GP on `n_train` ranges, fused with and
             bounded by `nls`) or `path` (`jaxcal.trajectory.gp_path`: every range, r = |p - a| + b + f(s) + e
             with f a Matern `nu` (0.5 or 1.5) GP along the path's arc length s, by a Kalman filter; no fuse
-            or bound, `nls` is the start and the fallback).
+            or bound, `nls` is the start and the fallback) or `space` (`jaxcal.trajectory.gp_space`: as `path`
+            with f a Matern `nu` GP over the horizontal position, on a Hilbert-space basis).
+        n_basis, basis_margin: `model=space` only: sine basis functions per horizontal axis (n_basis^2 in
+            all) on the positions' box grown by the factor basis_margin (> 1); max_signal: the signal
+            variance at most this times the variance of the Cauchy-weighted `nls` residuals (soft bound).
         block, max_ranges: `mean=anchor` only: the GP's covariance is block-diagonal over blocks
             of `block` consecutive ranges, on at most `max_ranges` ranges per anchor (evenly thinned
             in time); `block=0` (default): one dense GP on the stratified `n_train` subsample.
@@ -203,6 +209,9 @@ class GPParams(TrajectoryParams):
     max_ranges: int = 4096
     bound_clusters: int = 0
     model: str = "subsample"
+    n_basis: int = 20
+    max_signal: float = 1.0
+    basis_margin: float = 1.5
 
 
 def fit_hyper(x, y, mask, init: Hyper, nu: float = 1.5, jitter: float = 1e-6, max_steps: int = 200):
@@ -456,8 +465,13 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
         raise JaxcalError(f"parameter search: expected cuboid or gradient, got {p.search!r}")
     if p.mean not in ("constant", "anchor"):
         raise JaxcalError(f"parameter mean: expected constant or anchor, got {p.mean!r}")
-    if p.model not in ("subsample", "path"):
-        raise JaxcalError(f"parameter model: expected subsample or path, got {p.model!r}")
+    if p.model not in ("subsample", "path", "space"):
+        raise JaxcalError(f"parameter model: expected subsample, path or space, got {p.model!r}")
+    if p.model == "space" and (p.mean != "anchor" or p.n_basis < 2 or p.basis_margin <= 1.0):
+        raise JaxcalError(
+            f"parameter model=space needs mean=anchor, n_basis >= 2 and basis_margin > 1, got {p.mean!r}, "
+            f"{p.n_basis}, {p.basis_margin}"
+        )
     if p.model == "path" and (p.mean != "anchor" or p.nu not in (0.5, 1.5)):
         raise JaxcalError(f"parameter model=path needs mean=anchor and nu 0.5 or 1.5, got {p.mean!r}, {p.nu}")
     matern(jnp.zeros(1), 1.0, 1.0, p.nu)  # validates nu
@@ -486,9 +500,12 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
     if p.mean == "anchor":
         from jaxcal.trajectory.gp_anchor import calibrate_anchor_mean
         from jaxcal.trajectory.gp_path import calibrate_path
+        from jaxcal.trajectory.gp_space import calibrate_space
 
         if p.model == "path":
             out = calibrate_path(dataset, p, groups, info, planar)
+        elif p.model == "space":
+            out = calibrate_space(dataset, p, groups, info, planar)
         else:
             out = calibrate_anchor_mean(dataset, p, groups, info, n, planar)
         if progress is not None:

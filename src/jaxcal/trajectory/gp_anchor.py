@@ -42,10 +42,8 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax
-import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array, Bool, Float
 
 from jaxcal import solver as S
@@ -55,6 +53,8 @@ from jaxcal.trajectory.common import finish, report_fits, widen_covariance
 from jaxcal.trajectory.gp_kernel import (
     Hyper,
     _cone,
+    hyper_penalty,
+    laplace_fit,
     neg_log_marginal_likelihood,
     stratified_subsample,
     to_target,
@@ -160,22 +160,6 @@ def fit_mean_model(
     return _fit_mean_model(x, r, mask, init, nu, jitter, max_steps, target, noise_scale)[:2]
 
 
-def hyper_penalty(h: Hyper, log_max_length, log_min_variance):
-    """Soft bounds on the kernel: 0.5 (x / 0.25)^2 for x the excess of log l over `log_max_length`
-    and of `log_min_variance` over log s^2 (0 inside the bounds).
-
-    Where the ranges show no spatially correlated error the marginal likelihood is largest at s^2 = 0
-    (f vanishes: the GP is `nls` on the subsample) and flat along log s^2 -> -inf and then along log l:
-    BFGS walked there for 5 of the 10 campus anchors (s = 1e-5 m, l = 1e9-1e12 m, more than 100 steps,
-    then the 4x retry of `jaxcal.solver.retry_unconverged`). The floor on s^2 (far below the residual
-    variance, so f stays negligible) and the ceiling on l (beyond the data a Matern f is a constant
-    plus a trend, which trade with b and the anchor) end those walks.
-    """
-    over = jnp.maximum(h.log_length - log_max_length, 0.0)
-    under = jnp.maximum(log_min_variance - h.log_variance, 0.0)
-    return 0.5 * (over / 0.25) ** 2 + 0.5 * (under / 0.25) ** 2
-
-
 def _fit_mean_model(x, r, mask, init: MeanModel, nu, jitter, max_steps, target, noise_scale, bounds=None):
     """`fit_mean_model` plus the outcome code of the BFGS fit (`jaxcal.solver.outcome`); `bounds`:
     (log_max_length, log_min_variance) of `hyper_penalty` (None: none)."""
@@ -188,23 +172,7 @@ def _fit_mean_model(x, r, mask, init: MeanModel, nu, jitter, max_steps, target, 
             out = mean_model_nlml(th, x, r, mask, nu, jitter, target, noise_scale)
         return out if bounds is None else out + hyper_penalty(th.hyper, *bounds)
 
-    sol = optx.minimise(
-        lambda th, _: nlml(th) / n,
-        optx.BFGS(rtol=1e-7, atol=1e-7),
-        init,
-        max_steps=max_steps,
-        throw=False,
-    )
-    ok = jnp.isfinite(nlml(sol.value))
-    th = jax.tree.map(lambda a, b: jnp.where(ok, a, b), sol.value, init)
-    flat, unravel = jax.flatten_util.ravel_pytree(th)
-    hess = jax.hessian(lambda v: nlml(unravel(v)))(flat)
-    hess = 0.5 * (hess + hess.T)
-    w, v = jnp.linalg.eigh(hess)
-    # A saddle or flat direction (not a minimum) gets a large, not a negative, variance.
-    w = jnp.maximum(jnp.abs(w), 1e-10 * jnp.max(jnp.abs(w)))
-    cov = (v / w) @ v.T
-    return th, cov[:3, :3], S.outcome(sol)
+    return laplace_fit(nlml, init, n, max_steps)
 
 
 @eqx.filter_jit

@@ -44,10 +44,8 @@ import logging
 
 import equinox as eqx
 import jax
-import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array, Bool, Float
 
 from jaxcal import solver as S
@@ -55,9 +53,9 @@ from jaxcal.data import Result
 from jaxcal.errors import JaxcalError
 from jaxcal.params import with_overrides
 from jaxcal.trajectory.common import finish, report_fits, widen_covariance
-from jaxcal.trajectory.gp_kernel import Hyper, _cone
+from jaxcal.trajectory.gp_kernel import Hyper, _cone, hyper_penalty, laplace_fit
 
-__all__ = ["arc_length", "kalman_nlml", "path_nlml", "fit_path_all", "calibrate_path"]
+__all__ = ["arc_length", "kalman_nlml", "path_nlml", "fit_path_all", "calibrate_path", "calibrate_every_range"]
 
 log = logging.getLogger(__name__)
 
@@ -137,13 +135,6 @@ def path_nlml(theta: PathModel, x, s, r, mask, nu: float = 1.5, noise_scale=None
     return kalman_nlml(theta.hyper, s, y, mask, nu, noise_scale)
 
 
-def _penalty(h: Hyper, log_max_length, log_min_variance):
-    """Soft bounds (as `gp_anchor.hyper_penalty`): l at most a length, s_f^2 above a floor."""
-    over = jnp.maximum(h.log_length - log_max_length, 0.0)
-    under = jnp.maximum(log_min_variance - h.log_variance, 0.0)
-    return 0.5 * (over / 0.25) ** 2 + 0.5 * (under / 0.25) ** 2
-
-
 @eqx.filter_jit
 def fit_path_all(x, r, mask, noise_scale, a0, b0, nu: float, max_steps: int, min_signal: float, max_length: float):
     """Every anchor (vmap): x (A, n, 3), r / mask / noise_scale (A, n), seeds a0 (A, 3), b0 (A,).
@@ -168,25 +159,28 @@ def fit_path_all(x, r, mask, noise_scale, a0, b0, nu: float, max_steps: int, min
 
         def nlml(th):
             # the penalty per range: the likelihood of 1e4-1e5 ranges would overrule a fixed one
-            return path_nlml(th, xc, s, r, m, nu, w) + nv * _penalty(th.hyper, *bounds)
+            return path_nlml(th, xc, s, r, m, nu, w) + nv * hyper_penalty(th.hyper, *bounds)
 
-        sol = optx.minimise(
-            lambda th, _: nlml(th) / nv, optx.BFGS(rtol=1e-7, atol=1e-7), init, max_steps=max_steps, throw=False
-        )
-        ok = jnp.isfinite(nlml(sol.value))
-        th = jax.tree.map(lambda a, b: jnp.where(ok, a, b), sol.value, init)
-        flat, unravel = jax.flatten_util.ravel_pytree(th)
-        hess = jax.hessian(lambda v: nlml(unravel(v)))(flat)
-        ev, vec = jnp.linalg.eigh(0.5 * (hess + hess.T))
-        ev = jnp.maximum(jnp.abs(ev), 1e-10 * jnp.max(jnp.abs(ev)))  # a flat direction: large variance
-        cov = (vec / ev) @ vec.T
-        return th.anchor + origin, cov[:3, :3], th.bias, th.hyper, S.outcome(sol)
+        th, cov, code = laplace_fit(nlml, init, nv, max_steps)
+        return th.anchor + origin, cov, th.bias, th.hyper, code
 
     return jax.vmap(one)(x, r, mask, noise_scale, a0, b0)
 
 
 def calibrate_path(dataset, p, groups, info, planar) -> Result:
     """`gp` with `model=path` (module doc): `nls` start and Cauchy weights, the path GP on every range."""
+
+    def fit(args, steps):
+        return fit_path_all(*args, p.nu, steps, p.min_signal, p.max_length)
+
+    return calibrate_every_range(dataset, p, groups, info, planar, "path", fit)
+
+
+def calibrate_every_range(dataset, p, groups, info, planar, model: str, fit) -> Result:
+    """The driver of the GP models on every range (`model=path`, `model=space`): `nls` start and Cauchy
+    weights, `fit(args, steps)` on (positions, ranges, mask, noise scales, start anchors, start biases) of
+    every anchor returning (anchor (A, 3), covariance (A, 3, 3), bias (A,), Hyper, outcome codes (A,)),
+    then the fallback to `nls`, the height on a flat path and the `nls` covariance floor (module doc)."""
     from jaxcal.trajectory import nls
     from jaxcal.trajectory.gp_anchor import cauchy_weights, cone_spread
     from jaxcal.trajectory.poses import AnchorRanges
@@ -208,11 +202,11 @@ def calibrate_path(dataset, p, groups, info, planar) -> Result:
             w[a, valid] = 1.0 / np.maximum(cauchy_weights(e), 1e-6)
     args = tuple(jnp.asarray(v) for v in (pos, rng_m, mask, w, init_a, init_b))
 
-    def fit(steps):
-        out = fit_path_all(*args, p.nu, steps, p.min_signal, p.max_length)
+    def fit_steps(steps):
+        out = fit(args, steps)
         return out, out[4]
 
-    (est, cov, bias, hyp, _), codes, steps = S.retry_unconverged(fit, p.max_steps)
+    (est, cov, bias, hyp, _), codes, steps = S.retry_unconverged(fit_steps, p.max_steps)
     est, cov, bias = np.array(est), np.array(cov), np.array(bias)
     spread_gp = cone_spread(pos, rng_m, mask, est)
     spread_nls = cone_spread(pos, rng_m, mask, a0)
@@ -221,14 +215,14 @@ def calibrate_path(dataset, p, groups, info, planar) -> Result:
     for k in np.flatnonzero(fallback):
         est[k], cov[k], bias[k] = a0[k], cov0[k], b0[k]
     if fallback.any():
-        log.warning("gp: %d anchor(s) kept the nls answer (path GP fit worse than nls's)", int(fallback.sum()))
+        log.warning("gp: %d anchor(s) kept the nls answer (%s GP fit worse than nls's)", int(fallback.sum()), model)
     for k in np.flatnonzero(seeded & ~fallback):
         if planar[k]:  # a flat path does not observe the height: the GP does not move it either
             est[k, 2] = a0[k, 2]
         cov[k] = widen_covariance(cov[k], cov0[k])
     info = dict(
         info,
-        model="path",
+        model=model,
         fallback_nls=fallback.tolist(),
         cone_spread_m=spread_gp.tolist(),
         nls_cone_spread_m=spread_nls.tolist(),
@@ -240,5 +234,5 @@ def calibrate_path(dataset, p, groups, info, planar) -> Result:
     )
     kept = AnchorRanges(groups.position, groups.range, groups.mask)
     codes = np.maximum(np.asarray(codes), np.asarray(nls_codes))
-    hint = f"raise max_steps (now {p.max_steps}; retried with {steps}) of the path GP fit"
+    hint = f"raise max_steps (now {p.max_steps}; retried with {steps}) of the {model} GP fit"
     return finish(dataset, "gp", p, kept, est, cov, info, report_fits("gp", codes, kept, p, hint))
