@@ -1,7 +1,8 @@
 """Issue #19 item 3: `gp` run time on 10 anchors x ~1e5 ranges, and accuracy against the training-set
-size (JSON lines). `--model path`: the path GP on every range (`gp_path`; n_train is then unused: give one).
+size (JSON lines). `--model path` or `space`: the path or spatial GP on every range (`gp_path`, `gp_space`; n_train
+is then unused: give one).
 
-    python benchmarks/gp_speed.py [--rate 150] [--n 100 300 1000] [--seed 0] [--block 0] [--model path]
+    python benchmarks/gp_speed.py [--rate 150] [--n 100 300 1000] [--seed 0] [--block 0] [--model path|space]
 
 The simulated campus (10 anchors, NLOS behind buildings) ranged at `--rate` Hz per anchor (150 Hz:
 about 1e5 ranges). Per n_train: `gp` cold (JIT compilation included) and warm seconds, wall and
@@ -43,7 +44,7 @@ def main():
     ap.add_argument("--n", nargs="*", type=int, default=[100, 300, 1000])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--block", type=int, default=0)
-    ap.add_argument("--model", default="subsample", help="gp model: subsample or path")
+    ap.add_argument("--model", default="subsample", help="gp model: subsample, path or space")
     a = ap.parse_args()
     ds = simulate("campus", seed=a.seed, range_rate_hz=a.rate)
     base = {"dataset": f"campus seed={a.seed} rate={a.rate:g}", "ranges": int(ds.range.size)}

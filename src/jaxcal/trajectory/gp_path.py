@@ -33,6 +33,9 @@ Fallback (a sanity check, no fuse, no bound): an anchor whose fitted position ex
 worse than `nls`'s (`cone_spread` above `max_spread_ratio` x nls's) or whose fit is not finite keeps the
 `nls` answer and covariance (`info_fallback_nls`; one warning line when taken).
 
+The driver (`nls` start and weights, fallback, flat-path height, covariance floor, report) is
+`calibrate_every_range`, shared with `model=space` (`gp_space`).
+
 Revisits: s is the distance along the path, so a place passed twice at different s is two independent
 pieces of f (a spatial kernel would couple them); measured on hymn's 48 survey points in
 docs/benchmarks/trajectory.md.
