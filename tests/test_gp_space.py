@@ -77,11 +77,11 @@ def test_basis_kernel_converges_to_the_dense_matern_kernel(rng):
     assert gap[1] < 0.5
 
 
-def _laps(rng, n_laps=6, per_lap=250):
+def _laps(rng, n_laps=4, per_lap=200):
     """A loop driven in laps (alternating direction) around two anchors, range errors a fixed random
     field over the plane (sum of sines, wavelength ~ 8 m, sd ~ 0.1 m) plus white noise."""
     s = np.linspace(0.0, 2 * np.pi, per_lap, endpoint=False)
-    loop = np.stack([12.0 * np.cos(s), 6.0 * np.sin(s) + 1.5 * np.sin(3 * s), 0.2 * np.sin(2 * s)], 1)
+    loop = np.stack([12.0 * np.cos(s), 6.0 * np.sin(s) + 1.5 * np.sin(3 * s), 1.0 * np.sin(2 * s)], 1)
     x = np.concatenate([loop if k % 2 == 0 else loop[::-1] for k in range(n_laps)])
     x = x + rng.normal(0.0, 0.3, x.shape) * np.array([1.0, 1.0, 0.0])
     freq = rng.normal(0.0, 0.8, (6, 2))
@@ -93,8 +93,8 @@ def _laps(rng, n_laps=6, per_lap=250):
 
 
 def test_fit_recovers_anchor_under_spatial_error_with_honest_covariance(rng):
-    """Laps through a fixed error field: the fit lands within 0.3 m and inside its own covariance's
-    1e-4 chi^2 region (the covariance holds what f and the anchor trade)."""
+    """Laps through a fixed error field: the fit lands within 0.3 m horizontally and inside its own
+    covariance's 1e-4 chi^2 region (the covariance holds what f and the anchor trade)."""
     x, r, anchors = _laps(rng)
     a_n, n = r.shape
     a0 = anchors + rng.normal(0.0, 0.2, (a_n, 3))
@@ -103,7 +103,7 @@ def test_fit_recovers_anchor_under_spatial_error_with_honest_covariance(rng):
     est, cov = np.asarray(out[0]), np.asarray(out[1])
     for k in range(a_n):
         e = est[k] - anchors[k]
-        assert np.linalg.norm(e) < 0.3
+        assert np.linalg.norm(e[:2]) < 0.3
         assert e @ np.linalg.solve(cov[k], e) < chi2.ppf(1 - 1e-4, 3)
 
 
