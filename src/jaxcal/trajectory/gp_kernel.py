@@ -156,7 +156,7 @@ def laplace_fit(nlml, init, n, max_steps: int):
     Returns:
         (theta (init where the optimum is not finite), covariance (3, 3), outcome code).
     """
-    sol = optx.minimise(
+    sol: optx.Solution = optx.minimise(
         lambda th, _: nlml(th) / n, optx.BFGS(rtol=1e-7, atol=1e-7), init, max_steps=max_steps, throw=False
     )
     ok = jnp.isfinite(nlml(sol.value))
