@@ -732,7 +732,12 @@ def _guard_set(sets, params, config, objective_name, tuned_params, unmoved, refs
             # the pooled per-unit gain must exceed one standard error, and no recording clearly lose
             accepted, t = _guard(hb[key], _mean_dict(after)[key], np.concatenate(units_b), np.concatenate(units_a))
             own = [tune_eval.paired_gain_t(b, a) for b, a in zip(units_b, units_a, strict=True)]
-            bad = [d.name for d, ti in zip(sets, own, strict=True) if ti < -GUARD_T]
+            unique = len({d.name for d in sets}) == len(sets)  # else say which one by its place
+            bad = [
+                d.name if unique else f"recording {i + 1} ({d.name})"
+                for i, (d, ti) in enumerate(zip(sets, own, strict=True))
+                if ti < -GUARD_T
+            ]
             worse = bad[0] if bad else ""
             accepted = accepted and not bad
             if accepted and key == "heldout_m":  # calibrate's plain run of the values written

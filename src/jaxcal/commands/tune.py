@@ -172,6 +172,8 @@ def run(args) -> int:
     for path in args.dataset:  # every file read and checked before the long work (the same name each)
         ds, config = resolve_config(load(path, ("mesh",)), args.config)
         sets.append(ds)
+    if len({d.name for d in sets}) < len(sets):  # e.g. recordings of one site: name them by their files
+        sets = [dataclasses.replace(d, name=path) for d, path in zip(sets, args.dataset, strict=True)]
     ds = sets[0]
     user = parse_set(args.set)
     epochs, cell = args.epochs, args.cell
