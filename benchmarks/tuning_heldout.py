@@ -1,6 +1,7 @@
 """Held-out proof of `jaxcal tune`: tune on one dataset, calibrate others with the result.
 
-Simulated families (tune on the first seed, report on the others; no truth used by `evidence`):
+Simulated families (tune on the first seed, or with `--train N` on the set of the first N seeds,
+report on the others; no truth used by `evidence`):
 
 - torgau-conf1: the torgau hall (Table-I-shaped errors, NLOS walls, outlier pairs), frame conf1;
 - torgau-conf2: the same hall, frame conf2;
@@ -20,7 +21,7 @@ guard). One JSON line per row, then a Markdown table and the summary (median rat
 
     PYTHONPATH=src python benchmarks/tuning_heldout.py [--epochs 2000] [--tune-epochs K]
         [--tune-cell M] [--max-steps S] [--objective evidence] [--families a,b] [--no-real]
-        [--real srvlab_ground,...] [--seed-offset 100] [--tests N]
+        [--real srvlab_ground,...] [--seed-offset 100] [--train N] [--tests N]
 
 `--seed-offset` shifts every seed of the families (train and test) to draw recordings no table of
 docs/benchmarks/tuning.md has used (those use seeds below 50).
@@ -71,7 +72,10 @@ def main() -> None:
     ap.add_argument("--objective", default="evidence")
     ap.add_argument("--families", default=",".join(FAMILIES))
     ap.add_argument("--no-real", action="store_true")
-    ap.add_argument("--tests", type=int, default=2, help="test seeds per family (at most 8)")
+    ap.add_argument("--tests", type=int, default=2, help="test seeds per family (train + tests at most 9)")
+    ap.add_argument(
+        "--train", type=int, default=1, help="tune on a set of the family's first N seeds (`tune`'s mean objective)"
+    )
     ap.add_argument("--real-first", action="store_true", help="the dwm1001 rows before the families")
     ap.add_argument("--real", default=",".join(c for _, c in REAL), help="which dwm1001 scenarios")
     ap.add_argument("--seed-offset", type=int, default=0, help="added to every train and test seed (new seeds: >= 100)")
@@ -129,10 +133,11 @@ def main() -> None:
         real()
     for fam in [f for f in a.families.split(",") if f]:
         name, config, fixed, over, train, tests = FAMILIES[fam]
-        train, tests = train + a.seed_offset, [s + a.seed_offset for s in tests[: a.tests]]
+        seeds = [s + a.seed_offset for s in [train, *tests]]
+        trains, tests = seeds[: a.train], seeds[a.train : a.train + a.tests]
         t, c = time.perf_counter(), time.process_time()
         res = tune(
-            sim(name, train, over, a.epochs),
+            [sim(name, s, over, a.epochs) for s in trains] if a.train > 1 else sim(name, trains[0], over, a.epochs),
             fixed,
             config,
             objective_name=a.objective,
@@ -140,31 +145,43 @@ def main() -> None:
             cell_m=a.tune_cell,
             max_steps=a.max_steps,
         )
-        emit(
-            {
-                "family": fam,
-                "role": "train",
-                "seed": train,
-                "accepted": res.accepted,
-                "start": res.start,
-                "tuned": res.tuned,
-                "hard_before": res.hard_before,
-                "hard_after": res.hard_after,
-                "steps": res.steps,
-                "message": res.message,
-                "rmse_default_m": res.hard_before["rmse_m"],
-                "rmse_tuned_m": (res.hard_after if res.accepted else res.hard_before)["rmse_m"],
-                "grad_epochs": res.settings["epochs"],
-                "grad_cell_m": res.settings["cell_m"],
-                "guard_gain_t": res.settings["guard_gain_t"],
-                "guard_key": res.hard_key,
-                "seconds": round(time.perf_counter() - t, 1),
-                "cpu_seconds": round(time.process_time() - c, 1),
-                "seconds_gradient_phase": round(res.seconds["tune"], 1),
-                "guard_default": res.hard_before.get(res.hard_key),
-                "guard_tuned": res.hard_after.get(res.hard_key),
-            }
-        )
+        recs = res.settings["recordings"]
+        for k, (s, rec) in enumerate(zip(trains, recs, strict=True)):
+            kept = rec["hard_after"] if res.accepted else rec["hard_before"]
+            emit(
+                {
+                    "family": fam,
+                    "role": "train",
+                    "seed": s,
+                    "accepted": res.accepted,
+                    "rmse_default_m": rec["hard_before"]["rmse_m"],
+                    "rmse_tuned_m": kept["rmse_m"],
+                    "guard_key": res.hard_key,
+                    "guard_default": rec["hard_before"].get(res.hard_key),
+                    "guard_tuned": rec["hard_after"].get(res.hard_key),
+                    "guard_gain_t_own": rec["guard_gain_t"],
+                    **(
+                        {}
+                        if k
+                        else {  # the set's tuning, on its first row
+                            "train_seeds": trains,
+                            "start": res.start,
+                            "tuned": res.tuned,
+                            "steps": res.steps,
+                            "message": res.message,
+                            "guard_gain_t": res.settings["guard_gain_t"],
+                            "worse_recording": res.settings["worse_recording"],
+                            "guard_default_mean": res.hard_before.get(res.hard_key),
+                            "guard_tuned_mean": res.hard_after.get(res.hard_key),
+                            "grad_epochs": res.settings["epochs"],
+                            "grad_cell_m": res.settings["cell_m"],
+                            "seconds": round(time.perf_counter() - t, 1),
+                            "cpu_seconds": round(time.process_time() - c, 1),
+                            "seconds_gradient_phase": round(res.seconds["tune"], 1),
+                        }
+                    ),
+                }
+            )
         for s in tests:
             ds = sim(name, s, over, a.epochs)
             d = hard_metrics(ds, fixed, config)

@@ -62,7 +62,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import equinox as eqx
 import jax
@@ -256,9 +256,12 @@ def values_of(theta) -> dict[str, float]:
     return {k: float(1.0 / (1.0 + np.exp(-t[i])) if k in _LOGIT else np.exp(t[i])) for i, k in enumerate(names)}
 
 
-def objective(theta: Float[Array, " p"], prob: Problem) -> Float[Array, ""]:
+def objective(theta: Float[Array, " p"], prob: Problem | tuple[Problem, ...]) -> Float[Array, ""]:
     """Objective at theta (`theta_of`): held-out range loss [m], RMSE [m] (against the truth or the
-    consensus reference) or NLPL [nats]."""
+    consensus reference) or NLPL [nats]; of a tuple of problems (a set of recordings, the same
+    kind), the mean of theirs."""
+    if isinstance(prob, tuple):
+        return sum(objective(theta, p) for p in prob) / len(prob)
     prm = _with_theta(prob.prm, theta)
     if prob.kind == "evidence":
         return _heldout_loss(prm, prob)
@@ -487,7 +490,7 @@ def _tail_states(dataset, params, objective_name, config, split):
 
 
 def tune(
-    dataset: MeshDataset,
+    dataset: MeshDataset | Sequence[MeshDataset],
     params: pgp.PGPParams | dict | None = None,
     config: str | None = None,
     *,
@@ -521,8 +524,16 @@ def tune(
     are returned only if their hard figure (`hard_key`: `rmse_m` for truth, for evidence the
     cross-validated range error of held-out pairs, `tune_eval.heldout_range_error`) is lower.
 
+    A set of recordings (a sequence of datasets, the same `params` and `config` for each): the
+    objective is the mean of the recordings' objectives (each recording counts once, whatever its
+    node count), and the guard pools them: the mean of their hard figures must fall, the paired t
+    of the pooled units (every recording's held-out pairs or nodes) must exceed `GUARD_T`, and no
+    recording may get clearly worse on its own (its own t < -`GUARD_T`:
+    `settings["worse_recording"]` names it). One recording is exactly the one-recording tune.
+
     Args:
-        dataset: a mesh dataset (ground truth needed for `objective_name="truth"`).
+        dataset: a mesh dataset (ground truth needed for `objective_name="truth"`), or a sequence
+            of them (a set: the objective and guard above).
         params: `calibrate`'s parameters (`PGPParams` or overrides): the start point and the
             settings the guard checks with.
         config: frame configuration name.
@@ -533,10 +544,12 @@ def tune(
         segment: epochs per checkpointed segment (None: `segmented.segment_length(K)`, about sqrt(K)).
         progress: called with 1 after every BFGS step. on_step: called with (step, objective at
             the last accepted point). on_phase: called with a short text when the guard starts
-            a run (calibrate's runs of the start, then of the tuned values).
+            a run (calibrate's runs of the start, then of the tuned values; with a set, naming
+            the recording).
 
     Returns:
-        A `TuneResult`; `params` go into `jaxcal calibrate --params`.
+        A `TuneResult`; `params` go into `jaxcal calibrate --params`. With a set, `hard_before` and
+        `hard_after` are the recordings' means and `settings["recordings"]` has each one's figures.
     """
     import time
 
@@ -544,39 +557,68 @@ def tune(
         raise JaxcalError(f"objective: one of {', '.join(OBJECTIVES)}; got {objective_name!r}")
     if not isinstance(params, pgp.PGPParams):
         params = with_overrides(pgp.PGPParams(), params)
-    if dataset.n_epochs == 0:
-        raise JaxcalError(f"{dataset.name}: no epochs to tune on")
-    if pgp.uses_local(dataset, params, config):  # calibrate runs node-local grids there, tuning the global grid
-        raise pgp.global_grid_only("tune", dataset.name)
+    sets = [dataset] if isinstance(dataset, MeshDataset) else list(dataset)
+    if not sets:
+        raise JaxcalError("tune: no recording given")
+    for d in sets:
+        if d.n_epochs == 0:
+            raise JaxcalError(f"{d.name}: no epochs to tune on")
+        if pgp.uses_local(d, params, config):  # calibrate runs node-local grids there, tuning the global grid
+            raise pgp.global_grid_only("tune", d.name)
+    many = len(sets) > 1
+    if objective_name == "evidence" and len({bool(tune_eval.pair_folds(d.n_nodes)) for d in sets}) > 1:
+        few = next(d.name for d in sets if not tune_eval.pair_folds(d.n_nodes))
+        raise JaxcalError(f"{few}: fewer than 5 nodes, no pair to hold out (evidence is nlpl there): {_LIKE}")
+
+    def phase(text: str, i: int = 0) -> None:
+        if on_phase is not None:
+            on_phase(f"{text} (recording {i + 1}/{len(sets)}: {sets[i].name})" if many else text)
+
     surrogate = params if cell_m is None else dataclasses.replace(params, cell_m=float(cell_m))
-    ds = window(dataset, epochs)
+    wins = [window(d, epochs) for d in sets]
     mix = params.range_model == "mixture"
     t0 = time.perf_counter()
-    # the consensus reference: one batch fit of the whole recording, for the gradient phase and guard
-    asked, ref, fallback = objective_name, None, ""
+    # the consensus reference: one batch fit of each whole recording, for the gradient phase and guard
+    asked, fallback = objective_name, ""
+    refs: list = [None] * len(sets)
     if objective_name == "consensus":
         try:
-            ref = tune_eval.consensus_reference(dataset, config)
+            for i, d in enumerate(sets):
+                if many:
+                    phase("consensus: the batch fit", i)
+                refs[i] = tune_eval.consensus_reference(d, config)
         except JaxcalError as e:  # no reference: the held-out objective, which needs none either
-            objective_name, fallback = "evidence", str(e)
-    split = max(0, ds.n_epochs - int(tail)) if tail else 0
-    pairs_before, states = None, None
-    if split:
-        pairs, states = _tail_states(ds, surrogate, objective_name, config, split)
-        if ds is dataset and cell_m is None:  # calibrate's own run of the start: the guard's too
-            pairs_before = pairs
+            objective_name, fallback, refs = "evidence", str(e), [None] * len(sets)
+    splits = [max(0, w.n_epochs - int(tail)) if tail else 0 for w in wins]
+    pairs_before: list = [None] * len(sets)
+    states: list = [None] * len(sets)
+    for i, (d, w, split) in enumerate(zip(sets, wins, splits, strict=True)):
+        if split:
+            if many:
+                phase("calibrate's run up to the differentiated epochs", i)
+            pairs, states[i] = _tail_states(w, surrogate, objective_name, config, split)
+            if w is d and cell_m is None:  # calibrate's own run of the start: the guard's too
+                pairs_before[i] = pairs
     with jax.enable_x64(True):  # gradients through thousands of log-posterior epochs need float64
-        prob, _ = make_problem(
-            ds,
-            surrogate,
-            config,
-            objective_name,
-            tau_temp,
-            segment=segment,
-            tail_from=split,
-            states=states,
-            reference=ref,
-        )
+        probs = [
+            make_problem(
+                w,
+                surrogate,
+                config,
+                objective_name,
+                tau_temp,
+                segment=segment,
+                tail_from=split,
+                states=st,
+                reference=ref,
+            )[0]
+            for w, split, st, ref in zip(wins, splits, states, refs, strict=True)
+        ]
+        kinds = {p.kind for p in probs}
+        if len(kinds) > 1:  # evidence on < 5 nodes is nlpl: a mean of both would mix metres and nats
+            small = [d.name for d, p in zip(sets, probs, strict=True) if p.kind != probs[0].kind]
+            raise JaxcalError(f"{small[0]}: the objective would be {sorted(kinds)} across the recordings: {_LIKE}")
+        prob = probs[0]
         dtype = prob.logpost0.dtype
         theta0 = theta_of(
             params.sigma_r,
@@ -593,72 +635,126 @@ def tune(
             if on_step is not None:
                 on_step(k, v)
 
-        theta, steps, ok, message, before, after = _bfgs(theta0, prob, rtol, atol, max_steps, step_cb)
+        args = tuple(probs) if many else prob
+        theta, steps, ok, message, before, after = _bfgs(theta0, args, rtol, atol, max_steps, step_cb)
         if not math.isfinite(before):
-            raise JaxcalError(f"{dataset.name}: the objective is undefined at the start (no node localised?)")
+            names = ", ".join(d.name for d in sets)
+            raise JaxcalError(f"{names}: the objective is undefined at the start (no node localised?)")
         if not math.isfinite(after) or after > before:  # the optimiser's end is never worse
             theta, after = theta0, before
     t1 = time.perf_counter()
     start, tuned = values_of(theta0), values_of(theta)
-    if on_phase is not None:
-        on_phase("guard: calibrate's runs of the start")
-    hard_before, units_before = _check(dataset, params, config, objective_name, pairs_before, ref)
-    if on_phase is not None and tuned != start:
-        on_phase("guard: calibrate's runs of the tuned values")
-    key = hard_key(objective_name, hard_before)
-    gain_t = math.nan
-    tuned_params = with_overrides(params, tuned)
-    if tuned == start:  # the optimiser did not move: nothing to check
-        hard_after, accepted = dict(hard_before), False
-    elif key == "heldout_m":
-        pairs_after = tune_eval.heldout_pair_errors(dataset, tuned_params, config)
-        hard_after = {"heldout_m": tune_eval.mean_pair_error(pairs_after)}
-        # a gain within the pairs' own scatter is noise (measured: accepted gains of 1e-4 m came
-        # with 1-2.5 % worse RMSE): the per-pair gain must exceed one standard error
-        accepted, gain_t = _guard(hard_before[key], hard_after[key], units_before, pairs_after)
-        if accepted:  # calibrate's plain run of the values written (skipped when the start is kept)
-            hard_after = {**tune_eval.hard_metrics(dataset, tuned_params, config), **hard_after}
-    elif key == "consensus_m":
-        # the same rule per node: a mean gain within the nodes' scatter is the batch fit's own
-        # error being fitted (measured: 2 % closer to the fit, 5 % further from the truth)
-        hard_after, nodes_after = _check(dataset, tuned_params, config, objective_name, reference=ref)
-        accepted, gain_t = _guard(hard_before[key], hard_after[key], units_before, nodes_after)
-    else:
-        hard_after = check(dataset, tuned_params, config, objective_name, ref)
-        accepted = _better(hard_before[key], hard_after[key])
+    g = _guard_set(
+        sets, params, config, objective_name, with_overrides(params, tuned), tuned == start, refs, pairs_before, phase
+    )
+    n_ep = sum(w.n_epochs for w in wins)
     return TuneResult(
-        params=tuned if accepted else start,
+        params=tuned if g["accepted"] else start,
         start=start,
         tuned=tuned,
         objective=asked,
         before=before,
         after=after,
-        hard_before=hard_before,
-        hard_after=hard_after,
-        accepted=accepted,
+        hard_before=g["hard_before"],
+        hard_after=g["hard_after"],
+        accepted=g["accepted"],
         steps=steps,
         converged=ok,
         message=message,
         settings={
-            "epochs": ds.n_epochs,
-            "grad_from": split,  # epochs before it: calibrate's run, not differentiated
+            "epochs": n_ep,  # with a set: over all recordings (each one's in `recordings`)
+            "grad_from": sum(splits),  # epochs before it: calibrate's run, not differentiated
             "cell_m": surrogate.cell_m,
             "check_cell_m": params.cell_m,
-            "check_epochs": dataset.n_epochs,
+            "check_epochs": sum(d.n_epochs for d in sets),
             "likelihood": params.likelihood,
             "objective_used": prob.kind,
             "n_cells_side": prob.cfg.grid.n_side,
-            "segment": prob.segment or segment_length(ds.n_epochs - split),
+            "segment": prob.segment or segment_length(wins[0].n_epochs - splits[0]),
             "tau_temp": tau_temp,
             "dtype": str(dtype),
             "rtol": rtol,
             "atol": atol,
             "max_steps": max_steps,
-            "guard_gain_t": gain_t,  # t of the per-pair (evidence) or per-node (consensus) gain; NaN: not used
+            "guard_gain_t": g["t"],  # t of the per-pair (evidence) or per-node (consensus) gain; NaN: not used
             "guard_t_min": GUARD_T,
             # consensus: nodes the batch fit left unplaced (not scored; -1: not used)
-            "consensus_unplaced": -1 if ref is None else int((~np.isfinite(ref).all(-1)).sum()),
+            "consensus_unplaced": -1 if refs[0] is None else sum(int((~np.isfinite(r).all(-1)).sum()) for r in refs),
             "fallback_reason": fallback,  # why consensus fell back to evidence ("" when it did not)
+            "recordings": g["recordings"],  # per recording: name, epochs, hard figures, own t
+            "worse_recording": g["worse"],  # a set: the recording that got clearly worse ("" none)
         },
         seconds={"tune": t1 - t0, "check": time.perf_counter() - t1},
     )
+
+
+_LIKE = "a set needs one objective (metres and nats do not average); tune recordings of >= 5 nodes together"
+
+
+def _mean_dict(ds: list[dict]) -> dict:
+    """The recordings' figures averaged key by key (keys every recording has); one: itself."""
+    if len(ds) == 1:
+        return dict(ds[0])
+    return {k: float(np.mean([d[k] for d in ds])) for k in ds[0] if all(k in d for d in ds)}
+
+
+def _guard_set(sets, params, config, objective_name, tuned_params, unmoved, refs, pairs_before, phase) -> dict:
+    """The guard over one recording or a set (`tune`'s docstring): calibrate's runs of the start
+    and of the tuned values per recording -> {accepted, hard_before, hard_after (the means),
+    t (pooled), recordings (each one's figures and t), worse (name of a recording whose own
+    t < -GUARD_T, else "")}."""
+    before, units_b = [], []
+    for i, d in enumerate(sets):
+        phase("guard: calibrate's runs of the start", i)
+        m, u = _check(d, params, config, objective_name, pairs_before[i], refs[i])
+        before.append(m)
+        units_b.append(u)
+    hb = _mean_dict(before)
+    key = hard_key(objective_name, hb)
+    after: list[dict] = [dict(m) for m in before]
+    t, own, worse, accepted = math.nan, [math.nan] * len(sets), "", False
+    if not unmoved:  # the optimiser moved: run the tuned values
+        units_a = []
+        for i, d in enumerate(sets):
+            phase("guard: calibrate's runs of the tuned values", i)
+            if key == "heldout_m":
+                pairs_after = tune_eval.heldout_pair_errors(d, tuned_params, config)
+                after[i] = {"heldout_m": tune_eval.mean_pair_error(pairs_after)}
+                units_a.append(pairs_after)
+            elif key == "consensus_m":
+                after[i], nodes_after = _check(d, tuned_params, config, objective_name, reference=refs[i])
+                units_a.append(nodes_after)
+            else:
+                after[i] = check(d, tuned_params, config, objective_name, refs[i])
+        if units_a:
+            # a gain within the pairs' / nodes' own scatter is noise (measured: accepted gains of 1e-4 m
+            # came with 1-2.5 % worse RMSE; 2 % closer to the batch fit was 5 % further from the truth):
+            # the pooled per-unit gain must exceed one standard error, and no recording clearly lose
+            accepted, t = _guard(hb[key], _mean_dict(after)[key], np.concatenate(units_b), np.concatenate(units_a))
+            own = [tune_eval.paired_gain_t(b, a) for b, a in zip(units_b, units_a, strict=True)]
+            unique = len({d.name for d in sets}) == len(sets)  # else say which one by its place
+            bad = [
+                d.name if unique else f"recording {i + 1} ({d.name})"
+                for i, (d, ti) in enumerate(zip(sets, own, strict=True))
+                if ti < -GUARD_T
+            ]
+            worse = bad[0] if bad else ""
+            accepted = accepted and not bad
+            if accepted and key == "heldout_m":  # calibrate's plain run of the values written
+                after = [
+                    {**tune_eval.hard_metrics(d, tuned_params, config), **a} for d, a in zip(sets, after, strict=True)
+                ]
+        else:
+            accepted = _better(hb[key], _mean_dict(after)[key])
+    recordings = [
+        {"dataset": d.name, "epochs": d.n_epochs, "hard_before": b, "hard_after": a, "guard_gain_t": ti}
+        for d, b, a, ti in zip(sets, before, after, own, strict=True)
+    ]
+    return {
+        "accepted": accepted,
+        "hard_before": hb,
+        "hard_after": _mean_dict(after),
+        "t": t,
+        "recordings": recordings,
+        "worse": worse,
+    }

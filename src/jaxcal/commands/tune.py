@@ -1,13 +1,20 @@
-"""`jaxcal tune FILE --method pgp --objective evidence|consensus|truth|nlpl -o PARAMS.json [--config NAME]
+"""`jaxcal tune FILE [FILE ...] --method pgp --objective evidence|consensus|truth|nlpl -o PARAMS.json [--config NAME]
 [--tail K | --full] [--epochs K] [--cell M] [--max-steps S] [--set K=V ...]`: fit sigma_r, sigma_v
 and tau of the PGP filter by gradient (Optimistix BFGS), keeping them only if `calibrate` does better
-with them."""
+with them. Several files: one set of values for all of them (the mean objective; the guard pools them
+and refuses when one recording gets clearly worse)."""
 
 from __future__ import annotations
 
 
 def add_arguments(p) -> None:
-    p.add_argument("dataset", help="a mesh file")
+    p.add_argument(
+        "dataset",
+        nargs="+",
+        help="a mesh file; several: tune one set of values on all of them (the mean of their "
+        "objectives; the guard pools their held-out pairs or nodes and refuses if any one gets "
+        "clearly worse), values that transfer better to recordings not tuned on",
+    )
     p.add_argument("--method", default="pgp", choices=["pgp"], help="filter to tune (pgp)")
     p.add_argument(
         "--objective",
@@ -101,6 +108,10 @@ def _summary(res, objective: str, out) -> str:
         name += f" ({st['fallback_reason']}: {used})"
     elif used != objective:
         name += f" (fewer than 5 nodes, no pair to hold out: {used})"
+    recs = st.get("recordings") or []
+    if len(recs) > 1:  # a set: the figures are the recordings' means
+        name += f" on {len(recs)} recordings (mean)"
+        on = on.replace(" epochs", " epochs in all", 1)
     head = f"tune {name}: {res.steps} steps ({res.message}; {on}); start {fmt(res.start)}"
     if st.get("consensus_unplaced", -1) > 0:
         head += f" (the batch fit left {st['consensus_unplaced']} nodes unplaced: not scored)"
@@ -114,6 +125,13 @@ def _summary(res, objective: str, out) -> str:
     if res.tuned == res.start:
         return f"{head}; the optimiser did not move: calibrate's {k} {hb:.4g}{unit}; kept the start values -> {out}"
     units = {"heldout_m": "held-out pairs'", "consensus_m": "nodes'"}
+    if st.get("worse_recording"):  # better over the set, but one recording clearly worse on its own
+        own = {r["dataset"]: r["guard_gain_t"] for r in recs}[st["worse_recording"]]
+        return (
+            f"{head}; tuned {fmt(res.tuned)}: calibrate's {k} (mean) {hb:.4g} -> {ha:.4g}{unit} (t = {t:.2f}), "
+            f"but {st['worse_recording']} got clearly worse (its own t = {own:.2f} < -{st.get('guard_t_min', 1.0):g}):"
+            f" kept the start values -> {out}"
+        )
     if k in units and ha < hb and t == t:  # better on average, but within the pairs' / nodes' scatter
         return (
             f"{head}; tuned {fmt(res.tuned)}: calibrate's {k} {hb:.4g} -> {ha:.4g}{unit} is within "
@@ -130,6 +148,7 @@ def _summary(res, objective: str, out) -> str:
 def run(args) -> int:
     import dataclasses
     import json
+    import os
     import time
 
     from jaxcal.commands._common import _clean, check_output_path, load, print_json, resolve_config
@@ -146,9 +165,16 @@ def run(args) -> int:
         or args.tau_temp < 0
     ):
         raise JaxcalError("--epochs, --tail and --max-steps must be >= 1, --cell > 0, --tau-temp >= 0")
-    out = check_output_path(args.output, [args.dataset])
-    ds = load(args.dataset, ("mesh",))
-    ds, config = resolve_config(ds, args.config)
+    out = check_output_path(args.output, args.dataset)
+    if len(set(map(os.path.realpath, args.dataset))) < len(args.dataset):
+        raise JaxcalError("tune: a file is given twice (each recording counts once in the mean)")
+    sets = []
+    for path in args.dataset:  # every file read and checked before the long work (the same name each)
+        ds, config = resolve_config(load(path, ("mesh",)), args.config)
+        sets.append(ds)
+    if len({d.name for d in sets}) < len(sets):  # e.g. recordings of one site: name them by their files
+        sets = [dataclasses.replace(d, name=path) for d, path in zip(sets, args.dataset, strict=True)]
+    ds = sets[0]
     user = parse_set(args.set)
     epochs, cell = args.epochs, args.cell
     if args.full or args.tail:
@@ -162,12 +188,13 @@ def run(args) -> int:
 
     t0 = time.perf_counter()
     with progress_bar(args.max_steps, "tune", "step", enabled=not (args.quiet or args.json)) as bar:
+        mean = f" (mean of {len(sets)} recordings)" if len(sets) > 1 else ""
 
         def on_step(k, v):
-            bar.set_postfix_str(f"objective {v:.4g}")
+            bar.set_postfix_str(f"objective{mean} {v:.4g}")
 
         res = T.tune(
-            ds,
+            sets if len(sets) > 1 else ds,
             user,
             config,
             objective_name=args.objective,
@@ -188,7 +215,7 @@ def run(args) -> int:
         "params": {**fixed, **res.params},
         "tuning": {
             "method": args.method,
-            "dataset": ds.name,
+            "dataset": ds.name if len(sets) == 1 else [d.name for d in sets],
             "config": args.config,
             **{f.name: getattr(res, f.name) for f in dataclasses.fields(res) if f.name != "params"},
             "elapsed_s": time.perf_counter() - t0,
