@@ -4,6 +4,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -20,6 +22,9 @@ _BURN = 250  # most transitions of each of the two burn-in phases of `posterior_
 
 
 _BLOCK = 125  # transitions per block of `posterior_mean` after the burn-in (its stopping rule's unit)
+
+
+_ACCEPT = 0.8  # mean acceptance probability that the step size adapts to
 
 
 def _split_rhat(s1: Array, s2: Array, n: int | Array) -> Array:
@@ -44,7 +49,7 @@ def _pair_scale(e: Array, real: Array, n_par: Array) -> Array:
 
 
 @eqx.filter_jit
-def posterior_mean(
+def _own_posterior_mean(
     free: Array,
     template: Array,
     mask: Array,
@@ -237,6 +242,268 @@ def posterior_mean(
         mean = jnp.concatenate([mean, b_fixed])
         cov = jax.scipy.linalg.block_diag(cov, jnp.eye(n_b) * sb**2)
     return mean, cov, accept, jnp.max(rhat), burn1 + burn2 + n_draws, lap
+
+
+class _Posterior(eqx.Module):
+    """Log density (up to a constant) of the pair-level posterior of `posterior_mean` over
+    theta = (free coordinates, common offset[, per-node offsets])."""
+
+    template: Array  # (m, D) frame coordinates, fixed ones 0
+    index: Array  # (F,) flat indices of the free coordinates in `template`
+    node_offsets: Array  # (n,) zeros: the per-node offsets when they are not sampled
+    observations: Observations
+    numbers: _Numbers
+    nu: Array
+    scale: Array  # common scale of the Student-t pair errors [m]
+    prior_precision: Array  # (P,) of the flat/Gaussian prior
+    n_free: int = eqx.field(static=True)
+    sample_node_offsets: bool = eqx.field(static=True)
+
+    def errors(self, theta: Array) -> Array:
+        f = self.n_free
+        x = self.template.ravel().at[self.index].set(theta[:f]).reshape(self.template.shape)
+        b = theta[f + 1 :] if self.sample_node_offsets else self.node_offsets
+        return _errors(_State(x, theta[f], b), self.observations, self.numbers)
+
+    def __call__(self, theta: Array) -> Array:
+        e = self.errors(theta)
+        ll = -0.5 * (self.nu + 1.0) * jnp.sum(self.observations.w * jnp.log1p((e / self.scale) ** 2 / self.nu))
+        return ll - 0.5 * jnp.sum(self.prior_precision * theta * theta)
+
+
+@eqx.filter_jit
+def _posterior(free, template, mask, offset, node_offsets, observations, numbers, nu, sample_node_offsets: bool):
+    """The posterior (`_Posterior`), its mode theta0 (the fit) and its Laplace covariance there (P, P): the
+    inverse of J^T W J / s^2 + prior precision for a Gaussian likelihood of the same scale s."""
+    f, n_b = free.shape[0], node_offsets.shape[0]
+    theta0 = jnp.concatenate([free, jnp.reshape(offset, (1,))] + ([node_offsets] if sample_node_offsets else []))
+    sc, sb = _prior_scales(numbers)
+    prior = jnp.concatenate([jnp.zeros(f), jnp.stack([1.0 / sc**2]), jnp.full(n_b, 1.0 / sb**2)])[: theta0.shape[0]]
+    target = _Posterior(
+        template,
+        jnp.nonzero(mask.ravel(), size=f)[0],
+        jnp.zeros_like(node_offsets),
+        observations,
+        numbers,
+        nu,
+        jnp.asarray(1.0),
+        prior,
+        f,
+        sample_node_offsets,
+    )
+    e0 = target.errors(theta0)
+    n_par = f + numbers.use_c + numbers.use_b * n_b
+    target = eqx.tree_at(lambda t: t.scale, target, _pair_scale(e0, observations.w > 0, n_par))
+    jac = jax.jacfwd(target.errors)(theta0)
+    info = (jac.T * observations.w) @ jac / target.scale**2 + jnp.diag(prior)
+    return target, theta0, jnp.linalg.inv(info)
+
+
+def _sqrt_cov(cov: Array) -> Array:
+    """A square root R of a covariance (R R^T = cov), eigenvalues floored at 1e-12 of the largest."""
+    lam, vec = jnp.linalg.eigh(0.5 * (cov + cov.T))
+    return vec * jnp.sqrt(jnp.maximum(lam, 1e-12 * jnp.max(lam)))
+
+
+def _kernel(name: str):
+    """blackjax transition kernel `(key, state, logdensity, step_size, inverse_mass_matrix)`."""
+    import blackjax  # here, not at the top: importing it (optax, ...) takes a second, and only sampling needs it
+
+    if name == "nuts":
+        return blackjax.nuts.build_kernel()
+    hmc = blackjax.hmc.build_kernel()
+    return lambda key, state, logp, step, inverse_mass: hmc(key, state, logp, step, inverse_mass, _LEAPFROG)
+
+
+class _Chains(eqx.Module):
+    """The chains in whitened coordinates theta = center + root @ u, with blackjax's adaptation states: dual
+    averaging of the (shared) step size and Welford's estimate of the covariance of all chains' draws."""
+
+    center: Array  # (P,)
+    root: Array  # (P, P)
+    states: Any  # blackjax HMCState of the C chains, positions u (C, P)
+    step_size: Any  # blackjax DualAveragingAdaptationState
+    draws: Any  # blackjax WelfordAlgorithmState over theta
+
+
+def _whitened(target: _Posterior, center: Array, root: Array):
+    return lambda u: target(center + root @ u)
+
+
+def _chains_at(target: _Posterior, theta: Array, center: Array, cov: Array, step_size: Array) -> _Chains:
+    """Chains at theta (C, P), whitened by cov around center, the step size adaptation started at step_size."""
+    import blackjax
+    from blackjax.adaptation.mass_matrix import welford_algorithm
+    from blackjax.adaptation.step_size import dual_averaging_adaptation
+
+    root = _sqrt_cov(cov)
+    u = jnp.linalg.solve(root, (theta - center).T).T
+    states = jax.vmap(lambda v: blackjax.hmc.init(v, _whitened(target, center, root)))(u)
+    adaptation = dual_averaging_adaptation(target=_ACCEPT)[0](step_size)
+    draws = welford_algorithm(is_diagonal_matrix=False)[0](center.shape[0])
+    return _strong(_Chains(center, root, states, adaptation, draws))
+
+
+def _strong(tree):
+    """Every leaf a strongly typed array, so that `_run` sees the same types on every call (one compilation)."""
+    return jax.tree.map(lambda x: jnp.asarray(x).astype(jnp.asarray(x).dtype), tree)
+
+
+@eqx.filter_jit
+def _start(target: _Posterior, theta0: Array, laplace: Array, key: Array, n_chains: int) -> _Chains:
+    """Chains near the mode theta0 (0.1 Laplace sd), whitened by the Laplace covariance."""
+    theta = theta0 + 0.1 * jax.random.normal(key, (n_chains, theta0.shape[0])) @ _sqrt_cov(laplace).T
+    return _chains_at(target, theta, theta0, laplace, jnp.asarray(0.5 / theta0.shape[0] ** 0.25))
+
+
+@eqx.filter_jit
+def _rewhiten(target: _Posterior, chains: _Chains) -> _Chains:
+    """The chains, unmoved, whitened by the mean and covariance of the draws pooled since the last whitening
+    (a curved, weakly determined posterior is far from its Laplace approximation); the step size adaptation
+    restarts from its average."""
+    from blackjax.adaptation.mass_matrix import welford_algorithm
+
+    cov, _, mean = welford_algorithm(is_diagonal_matrix=False)[2](chains.draws)
+    cov = cov + jnp.diag(1e-12 + 1e-9 * jnp.diag(cov))
+    theta = chains.center + chains.states.position @ chains.root.T
+    return _chains_at(target, theta, mean, cov, jnp.exp(chains.step_size.log_step_size_avg))
+
+
+@eqx.filter_jit
+def _run(target: _Posterior, chains: _Chains, key: Array, adapt: Array, n: int, kernel: str):
+    """n transitions of every chain (vmapped), the step size shared and jittered by +-20 % (no trajectory
+    length resonates with the posterior). adapt (bool): the step size follows blackjax's dual averaging
+    (towards a mean acceptance probability `_ACCEPT` of the chains) and the draws enter the Welford
+    covariance; else the step size is the adaptation's average. Returns (chains, draws (C, n, P) of theta,
+    summed acceptance probability per chain)."""
+    from blackjax.adaptation.mass_matrix import welford_algorithm
+    from blackjax.adaptation.step_size import dual_averaging_adaptation
+
+    transition = _kernel(kernel)
+    da_update = dual_averaging_adaptation(target=_ACCEPT)[1]
+    wf_update = welford_algorithm(is_diagonal_matrix=False)[1]
+    logp_u = _whitened(target, chains.center, chains.root)
+    inverse_mass = jnp.ones(chains.center.shape[0])  # identity: the coordinates are whitened
+    n_chains = chains.states.position.shape[0]
+
+    def body(carry, k):
+        states, da, wf = carry
+        k_jitter, k_chains = jax.random.split(k)
+        step = jnp.exp(jnp.where(adapt, da.log_step_size, da.log_step_size_avg))
+        h = step * jax.random.uniform(k_jitter, minval=0.8, maxval=1.2)
+        keys = jax.random.split(k_chains, n_chains)
+        states, info = jax.vmap(lambda kk, s: transition(kk, s, logp_u, h, inverse_mass))(keys, states)
+        theta = chains.center + states.position @ chains.root.T
+        da_new = da_update(da, jnp.mean(info.acceptance_rate))
+        da = jax.tree.map(lambda a, b: jnp.where(adapt, a, b), da_new, da)
+        wf = jax.lax.cond(
+            adapt, lambda w: jax.lax.fori_loop(0, n_chains, lambda c, w: wf_update(w, theta[c]), w), lambda w: w, wf
+        )
+        return (states, da, wf), (theta, info.acceptance_rate)
+
+    (states, da, wf), (draws, acc) = jax.lax.scan(
+        body, (chains.states, chains.step_size, chains.draws), jax.random.split(key, n)
+    )
+    chains = _strong(_Chains(chains.center, chains.root, states, da, wf))
+    return chains, jnp.swapaxes(draws, 0, 1), jnp.sum(acc, axis=0)
+
+
+def split_rhat(draws: np.ndarray) -> np.ndarray:
+    """Split-chain potential scale reduction R-hat per coordinate of draws (C, n, K): blackjax's Gelman-Rubin
+    statistic of the 2 C half chains (NumPy input: no compilation per number of draws)."""
+    from blackjax.diagnostics import potential_scale_reduction
+
+    half = draws.shape[1] // 2
+    halves = np.concatenate([draws[:, :half], draws[:, half : 2 * half]], axis=0)
+    return np.asarray(potential_scale_reduction(halves, chain_axis=0, sample_axis=1))
+
+
+def _converged(draws: np.ndarray, mcse: float) -> bool:
+    """The stopping rule: split R-hat below 1.01 and the Monte Carlo error of the mean, from the spread of
+    the chains' means, below mcse posterior sd, in every coordinate of draws (C, n, K)."""
+    err2 = np.var(np.mean(draws, axis=1), axis=0, ddof=1) / draws.shape[0]
+    var = np.var(draws.reshape(-1, draws.shape[-1]), axis=0)
+    return bool(np.max(split_rhat(draws)) < 1.01 and np.all(err2 <= mcse**2 * np.maximum(var, 1e-300)))
+
+
+def _chunks(total: int, size: int) -> list[int]:
+    return [size] * (total // size) + ([total % size] if total % size else [])
+
+
+def _blackjax_posterior_mean(
+    free,
+    template,
+    mask,
+    offset,
+    node_offsets,
+    observations,
+    numbers,
+    key,
+    nu,
+    n_chains,
+    n_steps,
+    sample_node_offsets,
+    mcse,
+    kernel="hmc",
+):
+    target, theta0, laplace = _posterior(
+        free, template, mask, offset, node_offsets, observations, numbers, nu, sample_node_offsets
+    )
+    f = free.shape[0]
+    burn1 = min(n_steps // 8, _BURN)
+    burn2 = min(n_steps // 4 - n_steps // 8, _BURN)
+    n_blk = max(2 * ((n_steps - burn1 - burn2) // (2 * _BLOCK)), 2)
+    block = (n_steps - burn1 - burn2) // n_blk
+    k_start, k_burn1, k_burn2, k_run = jax.random.split(key, 4)
+    chains = _start(target, theta0, laplace, k_start, n_chains)
+    adapt = jnp.asarray(True)
+    for phase, (burn, k_burn) in enumerate(((burn1, k_burn1), (burn2, k_burn2))):
+        for c, n in enumerate(_chunks(burn, block)):  # chunks of the blocks' length: one compilation of `_run`
+            chains, _, _ = _run(target, chains, jax.random.fold_in(k_burn, c), adapt, n, kernel)
+        if phase == 0:
+            chains = _rewhiten(target, chains)
+    blocks, accepted = [], 0.0
+    for k in range(n_blk):
+        chains, draws, acc = _run(target, chains, jax.random.fold_in(k_run, k), ~adapt, block, kernel)
+        blocks.append(np.asarray(draws))
+        accepted += float(jnp.sum(acc))
+        if mcse > 0 and k + 1 >= 4 and (k + 1) % 2 == 0 and _converged(np.concatenate(blocks, axis=1)[..., :f], mcse):
+            break
+    draws = np.concatenate(blocks, axis=1)
+    flat = draws.reshape(-1, draws.shape[-1])
+    mean = np.mean(flat, axis=0)
+    cov = (flat - mean).T @ (flat - mean) / flat.shape[0]
+    if not sample_node_offsets:  # append the node offsets' prior: mean 0, variance sb^2, uncorrelated
+        sb = float(_prior_scales(numbers)[1])
+        n_b = node_offsets.shape[0]
+        mean = np.concatenate([mean, np.zeros(n_b)])
+        cov = np.block([[cov, np.zeros((cov.shape[0], n_b))], [np.zeros((n_b, cov.shape[0])), np.eye(n_b) * sb**2]])
+    accept = accepted / (draws.shape[1] * n_chains)
+    rhat = float(np.max(split_rhat(draws[..., :f])))
+    return mean, cov, accept, rhat, burn1 + burn2 + draws.shape[1], laplace
+
+
+def posterior_mean(
+    free: Array,
+    template: Array,
+    mask: Array,
+    offset: Array,
+    node_offsets: Array,
+    observations: Observations,
+    numbers: _Numbers,
+    key: Array,
+    nu: Array,
+    n_chains: int,
+    n_steps: int,
+    sample_node_offsets: bool = True,
+    mcse: float = 0.0,
+    sampler: str = "blackjax",
+):
+    """DOC"""
+    args = (free, template, mask, offset, node_offsets, observations, numbers, key, nu, n_chains, n_steps)
+    if sampler == "jaxcal":
+        return _own_posterior_mean(*args, sample_node_offsets, mcse)
+    return _blackjax_posterior_mean(*args, sample_node_offsets, mcse, "nuts" if sampler == "blackjax-nuts" else "hmc")
 
 
 def posterior_defect(
