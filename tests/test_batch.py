@@ -621,13 +621,14 @@ def test_split_rhat_reference():
     rng = np.random.default_rng(0)
     x = rng.normal(size=(2, 4, 500, 3))  # (half, chain, draw, coordinate)
     x[1, 0] += 3.0  # one half-chain stuck elsewhere in coordinate set
-    s1, s2 = jnp.asarray(x.sum(axis=2)), jnp.asarray((x * x).sum(axis=2))
     seq = x.reshape(8, 500, 3)
     n = 500
     w = seq.var(axis=1, ddof=1).mean(axis=0)
     b = n * seq.mean(axis=1).var(axis=0, ddof=1)
     ref = np.sqrt(((n - 1) / n * w + b / n) / w)
-    np.testing.assert_allclose(np.asarray(B._split_rhat(s1, s2, n)), ref, rtol=1e-10)
+    draws = np.concatenate([x[0], x[1]], axis=1)  # (chain, draw, coordinate): the halves one after the other
+    np.testing.assert_allclose(B._split_rhat(draws), ref, rtol=1e-10)
+    np.testing.assert_allclose(B._split_rhat(np.concatenate([draws, draws[:, :1]], axis=1)), ref, rtol=1e-10)  # odd n
     assert (ref > 1.2).all()
 
 

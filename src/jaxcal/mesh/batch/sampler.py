@@ -499,7 +499,47 @@ def posterior_mean(
     mcse: float = 0.0,
     sampler: str = "blackjax",
 ):
-    """DOC"""
+    """Posterior mean and covariance of the free frame coordinates (and offsets) (`estimate=mean`).
+
+    The least-squares / robust fit is the posterior *mode*. Where the geometry is weak (a direction the
+    ranges pin down only to second order, e.g. nodes nearly in one plane or on one line), the posterior is
+    curved and skewed, and its mode sits away from its mean; the mean is the estimate with the least
+    expected squared error. Model: one observation per pair (`observations`, the per-pair median summary), each
+    error Student-t with `nu` degrees of freedom and a common scale s = 1.4826 MAD(e) sqrt(M / (M - P)) of
+    the fit's pair errors (per-pair systematic errors dominate on real meshes: repeated ranges of a pair
+    are not independent, so the pair, not the single range, is the unit); flat prior on positions, the
+    offsets' priors of `_prior_scales`.
+
+    Sampled with blackjax: `n_chains` vmapped chains of HMC (`_LEAPFROG` leapfrog steps per transition) or
+    NUTS, started near the fit in coordinates whitened by the Laplace covariance. A quarter of `n_steps` (at
+    most 2 `_BURN`) is burn-in, in two phases that adapt one step size for all chains by blackjax's dual
+    averaging (towards a mean acceptance probability of `_ACCEPT`; the step is jittered by +-20 % at every
+    transition); blackjax's Welford estimator pools the first phase's draws of all chains, and their mean and
+    covariance whiten the second phase and the sampling (a curved posterior is far from its Laplace
+    approximation; one covariance from all chains' draws follows it better than blackjax's per-chain window
+    adaptation did, docs/benchmarks/uncertainty.md). After the burn-in the chains run in blocks of `_BLOCK`
+    transitions; split R-hat is blackjax's `potential_scale_reduction` of the half chains.
+
+    Args:
+        free: (F,) free coordinates of the fit; template: (m, D) frame coordinates (fixed ones 0);
+        mask: (m, D) bool, which entries of `template` are free; offset, node_offsets: the fit's range offsets c and b;
+        observations: pair observations (padding has weight 0); numbers: `_Numbers` of the fit; key: PRNG key;
+        nu: Student-t degrees of freedom; n_chains, n_steps: sampler sizes.
+        sample_node_offsets: False when the model has no per-node offsets (`numbers.use_b` off): they
+            then enter no range, their posterior is their prior (mean 0, sd `node_bias_sigma_m`,
+            independent of the rest), and they are returned as such instead of being sampled (P = F + 1
+            sampled dimensions instead of F + 1 + n: the whitening costs O(P^2) per gradient).
+        mcse: > 0: stop after the burn-in once the Monte Carlo error of the mean (from the spread of the
+            chains' means) is below mcse posterior sd and split R-hat below 1.01 in every free coordinate,
+            checked every two blocks (at least four); 0: run all n_steps.
+        sampler: `blackjax` (HMC), `blackjax-nuts` (NUTS) or `jaxcal` (the hand-written HMC).
+
+    Returns:
+        (mean (F + 1 + n,), covariance (F + 1 + n, F + 1 + n), acceptance rate, max split R-hat over the
+        free coordinates, transitions run per chain (burn-in included), the Laplace covariance of the same
+        model with a Gaussian likelihood of the same scale, (J^T W J / s^2 + prior)^-1 at the fit (P, P):
+        the linearisation that `solve` compares the samples with).
+    """
     args = (free, template, mask, offset, node_offsets, observations, numbers, key, nu, n_chains, n_steps)
     if sampler == "jaxcal":
         return _own_posterior_mean(*args, sample_node_offsets, mcse)
