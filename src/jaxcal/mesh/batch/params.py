@@ -28,7 +28,7 @@ PAIR_WEIGHTS = ("none", "spread")
 
 
 ESTIMATES = ("map", "mean")
-SAMPLERS = ("blackjax", "blackjax-nuts", "jaxcal")
+SAMPLERS = ("hmc", "nuts")
 
 
 RHAT_MAX = 1.1  # split R-hat above which (or undefined) estimate=mean falls back to the fit (Gelman-Rubin)
@@ -89,7 +89,8 @@ class BatchParams(eqx.Module):
             below this share of the posterior standard deviation in every coordinate and split R-hat is
             below 1.01 (checked every 250 transitions after the burn-in, from the spread of the chains'
             means); 0 runs every step.
-        sampler: of `estimate=mean`: `blackjax` (HMC) or `blackjax-nuts` (NUTS), or `jaxcal` (its own HMC).
+        sampler: blackjax kernel of `estimate=mean`: `hmc` (default) or `nuts` (No-U-Turn; several times the CPU
+            time of `hmc` on the real recordings, docs/benchmarks/uncertainty.md).
     """
 
     dim: int = 2
@@ -123,7 +124,7 @@ class BatchParams(eqx.Module):
     mcmc_chains: int = 16
     mcmc_steps: int = 4000
     mcmc_mcse: float = 0.05
-    sampler: str = "blackjax"
+    sampler: str = "hmc"
 
     def __check_init__(self):
         for name, allowed in (
