@@ -581,7 +581,8 @@ def _posterior_reference(pos_map, c_map, z, i, j, nu, n_draws, rng, min_ess=2_00
     return mean, cov_post, 1.0 / np.sum(w * w), mask
 
 
-def test_posterior_mean_equals_importance_sampling_reference(rng):
+@pytest.mark.parametrize("sampler", ["hmc", "nuts"])
+def test_posterior_mean_equals_importance_sampling_reference(rng, sampler):
     NU = 4.0  # noqa: N806  (Cauchy tails give this small problem a faint mirror mode that no chain visits)
     # Node 4 close to the line a0-a1 and ranging only a0, a1, a2: a weakly determined node.
     truth = np.array([[0.0, 0.0], [6.0, 0.0], [2.5, 4.0], [7.0, 5.0], [3.2, 0.2], [-1.0, 3.0], [4.0, -3.0]])
@@ -595,7 +596,11 @@ def test_posterior_mean_equals_importance_sampling_reference(rng):
     p_map = B.BatchParams(summary="median", **FAST)
     sol_map = B.solve(r, (0, 1, 2), p_map)
     sol = B.solve(
-        r, (0, 1, 2), B.BatchParams(summary="median", mcmc_steps=6000, student_nu=NU, **{**FAST, "estimate": "mean"})
+        r,
+        (0, 1, 2),
+        B.BatchParams(
+            summary="median", mcmc_steps=6000, student_nu=NU, sampler=sampler, **{**FAST, "estimate": "mean"}
+        ),
     )
     assert np.isfinite(sol.mcmc_accept) and sol.mcmc_rhat < 1.05 and sol.estimate == "mean"
     iu, ju = np.triu_indices(n, 1)
@@ -621,13 +626,14 @@ def test_split_rhat_reference():
     rng = np.random.default_rng(0)
     x = rng.normal(size=(2, 4, 500, 3))  # (half, chain, draw, coordinate)
     x[1, 0] += 3.0  # one half-chain stuck elsewhere in coordinate set
-    s1, s2 = jnp.asarray(x.sum(axis=2)), jnp.asarray((x * x).sum(axis=2))
     seq = x.reshape(8, 500, 3)
     n = 500
     w = seq.var(axis=1, ddof=1).mean(axis=0)
     b = n * seq.mean(axis=1).var(axis=0, ddof=1)
     ref = np.sqrt(((n - 1) / n * w + b / n) / w)
-    np.testing.assert_allclose(np.asarray(B._split_rhat(s1, s2, n)), ref, rtol=1e-10)
+    draws = np.concatenate([x[0], x[1]], axis=1)  # (chain, draw, coordinate): the halves one after the other
+    np.testing.assert_allclose(B._split_rhat(draws), ref, rtol=1e-10)
+    np.testing.assert_allclose(B._split_rhat(np.concatenate([draws, draws[:, :1]], axis=1)), ref, rtol=1e-10)  # odd n
     assert (ref > 1.2).all()
 
 
@@ -637,6 +643,7 @@ def test_estimate_mean_rejects_bad_settings():
         (dict(student_nu=0.0), "student_nu"),
         (dict(mcmc_steps=4), "mcmc_steps"),
         (dict(mcmc_chains=0), "mcmc_chains"),
+        (dict(sampler="jaxcal"), "sampler"),
     ):
         with pytest.raises(JaxcalError, match=word):
             B.BatchParams(**kw)

@@ -56,6 +56,7 @@ from jaxcal.mesh.batch.params import (
     LOSSES,
     PAIR_WEIGHTS,
     RHAT_MAX,
+    SAMPLERS,
     SOLVERS,
     SUMMARIES,
     BatchParams,
@@ -89,5 +90,6 @@ __all__ = [
     "SOLVERS",
     "PAIR_WEIGHTS",
     "ESTIMATES",
+    "SAMPLERS",
     "RHAT_MAX",
 ]

@@ -270,6 +270,7 @@ def _sample_posterior(
         p.mcmc_steps,
         chosen == "node",
         float(p.mcmc_mcse),
+        p.sampler,
     )
     f = free.size
     mean, cov_s = np.asarray(mean), np.asarray(cov_s)

@@ -28,6 +28,7 @@ PAIR_WEIGHTS = ("none", "spread")
 
 
 ESTIMATES = ("map", "mean")
+SAMPLERS = ("hmc", "nuts")
 
 
 RHAT_MAX = 1.1  # split R-hat above which (or undefined) estimate=mean falls back to the fit (Gelman-Rubin)
@@ -88,6 +89,8 @@ class BatchParams(eqx.Module):
             below this share of the posterior standard deviation in every coordinate and split R-hat is
             below 1.01 (checked every 250 transitions after the burn-in, from the spread of the chains'
             means); 0 runs every step.
+        sampler: blackjax kernel of `estimate=mean`: `hmc` (default) or `nuts` (No-U-Turn; several times the CPU
+            time of `hmc` on the real recordings, docs/benchmarks/uncertainty.md).
     """
 
     dim: int = 2
@@ -121,6 +124,7 @@ class BatchParams(eqx.Module):
     mcmc_chains: int = 16
     mcmc_steps: int = 4000
     mcmc_mcse: float = 0.05
+    sampler: str = "hmc"
 
     def __check_init__(self):
         for name, allowed in (
@@ -131,6 +135,7 @@ class BatchParams(eqx.Module):
             ("solver", SOLVERS),
             ("pair_weight", PAIR_WEIGHTS),
             ("estimate", ESTIMATES),
+            ("sampler", SAMPLERS),
         ):
             if getattr(self, name) not in allowed:
                 raise JaxcalError(
