@@ -2,6 +2,7 @@
 once however often the route passes it."""
 
 import numpy as np
+import pytest
 
 from jaxcal.data import TrajectoryDataset
 from jaxcal.trajectory import nls
@@ -82,3 +83,11 @@ def test_an_error_tied_to_a_place_and_repeated_every_lap_widens_the_ellipse_towa
     assert np.allclose(c, c.T) and np.linalg.eigvalsh(c - c0).min() > -1e-12
     e = res.position[0, :2] - ds.anchor_truth[0, :2]
     assert e @ np.linalg.solve(c, e) <= 0.5 * e @ np.linalg.solve(c0, e)
+
+
+def test_a_cell_size_that_means_nothing_is_a_clear_error():
+    from jaxcal.errors import JaxcalError
+
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(JaxcalError, match="cov_cell_m"):
+            nls.calibrate(laps(0), {"cov_cell_m": bad})

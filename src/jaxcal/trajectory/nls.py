@@ -325,6 +325,8 @@ def calibrate(dataset, params=None, config=None) -> Result:
     p = with_overrides(NLSParams(), params)
     if p.loss not in ("cauchy", "huber", "l2"):
         raise JaxcalError(f"parameter loss: expected cauchy, huber or l2, got {p.loss!r}")
+    if not p.cov_cell_m >= 0:
+        raise JaxcalError(f"parameter cov_cell_m: must be a number >= 0 [m] (0 = off), got {p.cov_cell_m}")
     groups, info = prepare_poses(dataset, p)
 
     (est, cov, bias, codes), codes, steps = solve_all_checked(groups, p)
