@@ -42,7 +42,7 @@ a third of the anchors, height errors of 2-5 m with predicted sd of 0.05-0.3 m).
    `height_envelope` of their shifts from the estimate added (each shift on or inside the 95 % ellipse of
    the added part), so the 2-D ellipse holds the anchor whatever its height in the span. Measured on the
    development campaigns (even seeds 0-38, no drift): 5 of the 11 anchors outside their ellipse were such
-   NaN heights, 0.5-0.9 m off for 0.2-0.45 m predicted, whose true height's profile fit scored z = 2.2-3.4
+   NaN heights, 0.56-0.92 m off for 0.22-0.45 m predicted, whose true height's profile fit scored z = 2.2-3.4
    (above `mirror_z`, so step 4 did not count it); with step 5 all five are inside.
 
 Imports `nls` (for its covariance); `common.finish` imports this module inside the function.
