@@ -91,3 +91,46 @@ def test_profile_widens_the_covariance_to_hold_what_fits_as_well(rng):
         assert np.linalg.eigvalsh(res.covariance[0] - ref.covariance[0]).min() > -1e-12
     else:
         assert res.params["info_mirror_ambiguous"] == ["a0"]
+
+
+def test_nan_height_horizontal_ellipse_holds_the_fit_at_every_height_near_the_plane(rng):
+    """Where the mirror check leaves the height NaN, the horizontal fit depends on the height the ranges cannot
+    tell (on a 15 % slope the mirror is 0.44 m off horizontally). Slow reference: explicit SciPy refits of
+    the in-plane position and bias at fixed distances u from the path's plane (Cauchy loss at the check's
+    scale), at heights between the profile's grid points; each one's horizontal position lies inside the
+    reported 95 % ellipse (mirror step 5), and the covariance stays symmetric PSD."""
+    from scipy.optimize import least_squares
+    from scipy.stats import chi2
+
+    from jaxcal.trajectory import mirror
+    from jaxcal.trajectory.poses import prepare_poses
+
+    ds = sloped_campaign(int(rng.integers(1 << 30)), noise_m=0.05 + 0.1 * rng.random())
+    res = nls.calibrate(ds)
+    assert res.params["info_mirror_ambiguous"] == ["a0"] and np.isnan(res.position[0, 2])
+    cov = res.covariance[0, :2, :2]
+    assert np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov).min() > 0
+    groups, _ = prepare_poses(ds, nls.NLSParams())
+    m = np.asarray(groups.mask[0])
+    pos, r = np.asarray(groups.position[0])[m], np.asarray(groups.range[0])[m]
+    centre, n = (np.asarray(v) for v in mirror.local_plane(pos, r, np.ones(r.size, bool)))
+    e1 = np.cross(n, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    est = np.append(res.position[0, :2], 0.0)
+    est[2] = centre[2] - ((est[:2] - centre[:2]) @ n[:2]) / n[2]  # the estimate's foot on the plane
+    b0 = np.median(r - np.linalg.norm(pos - est, axis=1))
+    scale = max(2.385 * 1.4826 * np.median(np.abs(r - np.linalg.norm(pos - est, axis=1) - b0)), 0.05)
+    q95 = chi2.ppf(0.95, 2)
+    for u in np.linspace(-0.97, 0.97, 12):  # |u| <= 1 m lies in the profile's span; not its grid points
+
+        def anchor(y, u=u):
+            return centre + u * n + y[0] * e1 + y[1] * e2
+
+        def residual(y, u=u):
+            return np.linalg.norm(pos - anchor(y, u), axis=1) + y[2] - r
+
+        y0 = [(est - centre) @ e1, (est - centre) @ e2, b0]
+        fit = least_squares(residual, y0, loss="cauchy", f_scale=scale, xtol=1e-10, ftol=1e-10)
+        d = anchor(fit.x)[:2] - res.position[0, :2]
+        assert d @ np.linalg.solve(cov, d) <= q95, (u, d)
