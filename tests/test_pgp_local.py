@@ -43,7 +43,7 @@ def run_local(ds, params):
     assert setup is not None
     order, z, dt, lattice, wide = setup
     n = ds.n_nodes
-    allowed, need = pgp._neighbour_sets(p, n)
+    allowed, need = pgp.neighbour_sets(p, n)
     cfg, kind, log_cells, nbrs = L.setup(p, n, z, allowed, lattice, wide)
     prm = pgp.FilterParams(*(jnp.asarray(getattr(p, f), float) for f in pgp.NUMERIC))
     _, out, cov = L.run_local(cfg, prm, jnp.asarray(allowed), jnp.asarray(need, float), kind, log_cells, nbrs, z, dt)

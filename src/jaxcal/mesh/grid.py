@@ -19,7 +19,7 @@ through
 the graph of per-pair median ranges (so every node a chain of ranges can place is covered, and a few
 outliers do not blow the grid up), plus `margin_m`, capped by `extent_m`.
 
-The per-item kernels here (one node, one pair) are plain functions; the filter in `pgp.py` vmaps
+The per-item kernels here (one node, one pair) are plain functions; the filter in `pgp` vmaps
 them.
 `node_loglik` is the one hot function (eq. 11); a faster implementation (FFT ring convolution,
 windows)
