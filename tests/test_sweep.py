@@ -164,6 +164,7 @@ def test_no_recompilation_across_values(monkeypatch, execution):
             eqx.filter_jit(eqx.debug.assert_max_traces(S.reduce_metrics, max_traces=1)),
         ]
         monkeypatch.setattr(pgp, "run_filter", fns[0])
+        monkeypatch.setattr(pgp.epochs, "run_filter", fns[0])  # what `pgp.run_chunked` calls
         monkeypatch.setattr(S, "_reduce_jit", fns[1])
     doc = {
         "epochs": 5,

@@ -60,23 +60,32 @@ only), `filter_epochs` / `run_filter` (the whole filter), `run_chunked` / `advan
 
 Modules (one job each; the names below are re-exported here, `from jaxcal.mesh import pgp` is the entry):
 `params` (`PGPParams`, `validate_params`), `state` (the filter's pytrees, `PGPInfo`), `kernels`
-(hypotheses, one node's epoch, the window step `WindowStep`), `scan` (the scans and their drivers),
-`setup` (ranges, neighbour sets, node order, `prepare`), `stream` (`PGPStream`, `start`, `advance`)
-and `driver` (`run_pgp`, the range-offset pass, node-local runs, `calibrate`, `with_pair_covariance`).
+(hypotheses, one node's epoch, the window step `WindowStep`), `epochs` (the epoch scans and their
+drivers), `setup` (ranges, neighbour sets, node order, `prepare`), `stream` (`PGPStream`, `start`,
+`advance`) and `driver` (`run_pgp`, the range-offset pass, node-local runs, `calibrate`,
+`with_pair_covariance`).
 """
 
-# Besides `__all__`, private names that the tests reach as `pgp._X` (pyproject.toml: F401 is off for
-# this file, which only re-exports).
 from jaxcal.mesh.pgp.driver import (
-    _local_setup,
     calibrate,
     cell_variance,
     global_grid_only,
+    local_setup,
     local_site,
     run_pgp,
     software_version,
     uses_local,
     with_pair_covariance,
+)
+from jaxcal.mesh.pgp.epochs import (
+    advance_chunked,
+    filter_epochs,
+    run_chunked,
+    run_filter,
+    run_scan,
+    run_segmented,
+    scan,
+    scan_windows,
 )
 from jaxcal.mesh.pgp.kernels import WindowStep
 from jaxcal.mesh.pgp.params import (
@@ -89,16 +98,6 @@ from jaxcal.mesh.pgp.params import (
     RANGE_MODELS,
     PGPParams,
     validate_params,
-)
-from jaxcal.mesh.pgp.scan import (
-    advance_chunked,
-    filter_epochs,
-    run_chunked,
-    run_filter,
-    run_scan,
-    run_segmented,
-    scan,
-    scan_windows,
 )
 from jaxcal.mesh.pgp.setup import filter_params, neighbour_sets, node_order, prepare, symmetric_ranges
 from jaxcal.mesh.pgp.state import (
@@ -128,6 +127,7 @@ __all__ = [
     "validate_params",
     "uses_local",
     "local_site",
+    "local_setup",
     "global_grid_only",
     "cell_variance",
     "software_version",

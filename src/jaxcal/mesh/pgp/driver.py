@@ -17,8 +17,8 @@ from jaxcal.data import MeshDataset, Result
 from jaxcal.errors import JaxcalError
 from jaxcal.mesh import grid as G
 from jaxcal.mesh import local as L
+from jaxcal.mesh.pgp.epochs import run_chunked
 from jaxcal.mesh.pgp.params import OFFSET_EPOCHS, PGPParams, validate_params
-from jaxcal.mesh.pgp.scan import run_chunked
 from jaxcal.mesh.pgp.setup import filter_params, neighbour_sets, node_order, prepare, symmetric_ranges
 from jaxcal.mesh.pgp.state import PGPInfo
 from jaxcal.params import as_dict, with_overrides
@@ -30,6 +30,7 @@ __all__ = [
     "cell_variance",
     "uses_local",
     "local_site",
+    "local_setup",
     "global_grid_only",
     "software_version",
 ]
@@ -89,7 +90,7 @@ def run_pgp(
     validate_params(params)
     local = None
     if params.grid_mode != "global":
-        local = _local_setup(dataset, params, b, mode, bool(len(snapshot_epochs)))
+        local = local_setup(dataset, params, b, mode, bool(len(snapshot_epochs)))
     if params.bias == "network" or (params.bias == "auto" and local is not None):
         return _run_offset(dataset, params, config, mode, snapshot_epochs, progress, posterior, (a, b, local))
     if local is not None:
@@ -99,13 +100,13 @@ def run_pgp(
     cells = cfg.grid.cells(logpost0.dtype)
     n = logpost0.shape[0]
     lp = st.logpost.reshape(n, -1)
-    _, cov = jax.vmap(G.mean_cov, in_axes=(0, None))(lp, cells)
+    _, grid_cov = jax.vmap(G.mean_cov, in_axes=(0, None))(lp, cells)
     inv = np.argsort(order)
     est = np.asarray(out.estimate, dtype=np.float64)[:, inv]
     raw = np.asarray(out.raw, dtype=np.float64)[:, inv]
     loc_any = np.isfinite(est).all(axis=2).any(axis=0)
     final = est[-1]
-    cov = np.asarray(cov, dtype=np.float64)[inv]
+    cov = np.asarray(grid_cov, dtype=np.float64)[inv]
     cov = cov + cell_variance(cfg.grid.cell_m, n, b)
     cov[~loc_any] = np.nan
     if b != a:  # proxy frame: every epoch moved into the configuration's frame by its a0, a1, a2
@@ -119,7 +120,7 @@ def run_pgp(
         snapshots=np.exp(np.asarray(st.snaps, dtype=np.float64))[:, inv],
         log_mass=np.asarray(out.log_mass, dtype=np.float64)[:, inv],
         raw_track=raw,
-        localised=loc_any,
+        localised=np.asarray(loc_any),
         frame=f"anchors:{b[0]},{b[1]},{b[2]}",
     )
     return res, info
@@ -134,7 +135,7 @@ def uses_local(dataset: MeshDataset, params=None, config: str | None = None, mod
         return False
     a = dataset.config(config)
     b = a if params.frame == "direct" else _filter_anchors(dataset, a, params.frame)
-    return _local_setup(dataset, params, b, mode, False) is not None
+    return local_setup(dataset, params, b, mode, False) is not None
 
 
 def global_grid_only(tool: str, site: str) -> JaxcalError:
@@ -153,7 +154,7 @@ def _run_offset(
     """`run_pgp` with `bias` "network" (or "auto" on node-local grids): a first run on the first
     `OFFSET_EPOCHS` epochs, the offset fitted to its positions (`range_offset.fit_offset`), then the run
     on every range minus the offset. The result's `params` are `params` (a rerun fits the same offset).
-    `where`: (a, b, `_local_setup` or None). On node-local grids both runs take the lattice, wide side
+    `where`: (a, b, `local_setup` or None). On node-local grids both runs take the lattice, wide side
     and neighbour lists of the recording's own ranges (one compilation for both)."""
     from jaxcal.mesh.range_offset import fit_offset, pair_medians
 
@@ -221,9 +222,17 @@ def local_site(params: PGPParams, z: np.ndarray, anchors, mode: str = "pgp", sna
     return L.use_local(params, full.n_side, wide, mode, snapshots)
 
 
-def _local_setup(dataset: MeshDataset, params: PGPParams, anchors, mode: str, snapshots: bool):
-    """(order, z, dt, lattice, wide side) when `run_pgp` takes the node-local grids (`local.py`),
-    else None."""
+def local_setup(
+    dataset: MeshDataset, params: PGPParams, anchors, mode: str, snapshots: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, G.Grid, int] | None:
+    """What `run_pgp` runs on node-local grids (`local.py`) in the frame of `anchors` (a0, a1, a2), or
+    None where it runs the global grid (`local_site`).
+
+    Returns:
+        (order, z, dt, lattice, wide): (N,) filter order (`node_order`), (K, N, N) symmetric ranges
+        in filter order [m], (K,) time steps [s], the lattice `grid.Grid` and the wide grid's side
+        [cells]; or None.
+    """
     n = dataset.n_nodes
     order = node_order(n, anchors)
     z = symmetric_ranges(np.asarray(dataset.range, dtype=np.float64))[:, order][:, :, order]
@@ -290,7 +299,7 @@ def _run_local(dataset: MeshDataset, params: PGPParams, a, b, local, progress, p
         snapshots=np.zeros((0, n, 0, 0)),
         log_mass=np.zeros(est.shape[:2]),
         raw_track=raw,
-        localised=loc_any,
+        localised=np.asarray(loc_any),
         frame=f"anchors:{b[0]},{b[1]},{b[2]}",
     )
     return res, info

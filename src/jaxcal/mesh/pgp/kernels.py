@@ -69,6 +69,7 @@ def hypotheses(config: FilterConfig, params: FilterParams, logp: Float[Array, "n
     `cells` is (C, 2) shared by all nodes or (N, C, 2) per node (windows)."""
     ca = 0 if cells.ndim == 3 else None
     if config.mode == "pgp" and config.select == "soft":
+        assert params.tau_temp is not None, "select='soft' needs FilterParams.tau_temp"
         pos, lw = jax.vmap(G.soft_hypotheses, in_axes=(0, ca, None, None, None))(
             logp, cells, config.n_hyp, params.tau, params.tau_temp
         )

@@ -120,7 +120,7 @@ def prepare(
     mode: str = "pgp",
     snapshot_epochs=(),
     anchors=None,
-):
+) -> tuple[FilterConfig, FilterParams, FilterInputs, Float[Array, "nodes nx ny"], np.ndarray]:
     """Host-side setup: node order, grid, masks and arrays for `filter_epochs` (and every other
     filter driver: `scan`, `run_chunked`, ...).
 

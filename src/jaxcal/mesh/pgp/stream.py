@@ -11,8 +11,8 @@ import numpy as np
 
 from jaxcal.errors import JaxcalError
 from jaxcal.mesh import grid as G
+from jaxcal.mesh.pgp.epochs import run_scan
 from jaxcal.mesh.pgp.params import PGPParams, validate_params
-from jaxcal.mesh.pgp.scan import run_scan
 from jaxcal.mesh.pgp.setup import node_order, setup_filter, symmetric_ranges
 from jaxcal.mesh.pgp.state import FilterConfig, FilterInputs, FilterParams, FilterState, full_logpost, init_state
 from jaxcal.params import with_overrides

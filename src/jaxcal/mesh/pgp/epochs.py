@@ -14,6 +14,7 @@ Shapes: `nodes` in filter order (a0, a1, a2, others), `epochs` of `inputs.z`, `(
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -349,11 +350,11 @@ def run_chunked(
     config: FilterConfig,
     params: FilterParams,
     inputs: FilterInputs,
-    logpost0,
+    logpost0: Float[Array, "nodes nx ny"],
     chunk: int = 64,
     full_chunk: int = 4,
-    progress=None,
-):
+    progress: Callable[[int], object] | None = None,
+) -> tuple[FilterState, FilterOut]:
     """`run_filter` for `likelihood="window"` driven from the host in chunks of epochs.
 
     Same epochs, same results as `run_filter`; while the windows hold, chunks of `chunk` epochs
@@ -387,7 +388,7 @@ def advance_chunked(
     stop: int | None = None,
     chunk: int = 64,
     full_chunk: int = 4,
-    progress=None,
+    progress: Callable[[int], object] | None = None,
 ) -> tuple[FilterState, FilterOut]:
     """Epochs `start:stop` of `inputs` from `state` on `run_chunked`'s fast path (which is this
     from `init_state` over all epochs, then `full_state`).
@@ -421,8 +422,8 @@ def advance_chunked(
             valid = jnp.arange(chunk) < m
             full = st.logpost
             small = dataclasses.replace(st, logpost=jnp.zeros((n, 1, 1), full.dtype))
-            st2, out, done = _run_scan_windows(config, params, part(k, k + m, chunk - m), small, valid, jnp.asarray(k))
-            done = int(done)
+            st2, out, ran = _run_scan_windows(config, params, part(k, k + m, chunk - m), small, valid, jnp.asarray(k))
+            done = int(ran)
             if done:
                 st = dataclasses.replace(st2, logpost=full)
                 outs.append(jax.tree.map(lambda a, d=done: a[:d], out))
@@ -446,10 +447,10 @@ def run_segmented(
     config: FilterConfig,
     params: FilterParams,
     inputs: FilterInputs,
-    logpost0,
+    logpost0: Float[Array, "nodes nx ny"],
     segment: int = 64,
-    progress=None,
-):
+    progress: Callable[[int], object] | None = None,
+) -> tuple[FilterState, FilterOut]:
     """`run_filter` as a host loop over segments of `segment` epochs (one jitted `scan` per
     segment, the state carried from one call to the next), calling `progress(epochs)` after each.
 
