@@ -2,8 +2,8 @@
 file left, an existing output untouched.
 
 The moments are found from the process's own output rather than guessed delays (the machine's load
-varies): `JAX_LOG_COMPILES=1` makes JAX log "Compiling jit(_scan)" when the PGP filter's scan starts
-compiling and "Finished XLA compilation of jit(_scan)" just before XLA runs it.
+varies): `JAX_LOG_COMPILES=1` makes JAX log "Compiling jit(scan)" when the PGP filter's scan starts
+compiling and "Finished XLA compilation of jit(scan)" just before XLA runs it.
 """
 
 from __future__ import annotations
@@ -88,12 +88,12 @@ def test_signal_during_compilation_and_inside_the_scan(tmp_path):
     env = {"JAX_LOG_COMPILES": "1"}
     # while XLA compiles the filter's scan
     p, lines, kept = _start(args, tmp_path, env)
-    _wait_for(lines, "Compiling jit(_scan)")
+    _wait_for(lines, "Compiling jit(scan)")
     p.send_signal(signal.SIGTERM)
     _check_stopped(p, kept, signal.SIGTERM, tmp_path, out, before)
     # while the compiled scan runs (XLA threads busy): Ctrl-C used to be lost or crash here
     p, lines, kept = _start(args, tmp_path, env)
-    _wait_for(lines, "Finished XLA compilation of jit(_scan)")
+    _wait_for(lines, "Finished XLA compilation of jit(scan)")
     time.sleep(0.3)
     p.send_signal(signal.SIGINT)
     _check_stopped(p, kept, signal.SIGINT, tmp_path, out, before)

@@ -11,7 +11,8 @@ from jaxcal.io import hdf5
 from jaxcal.mesh import grid as G
 from jaxcal.mesh import parametric
 from jaxcal.mesh.frame import to_frame
-from jaxcal.mesh.pgp import PGPParams, _hypotheses, prepare, run_pgp
+from jaxcal.mesh.pgp import PGPParams, prepare, run_pgp
+from jaxcal.mesh.pgp.kernels import hypotheses
 from jaxcal.mesh.pgp_reference import run_reference_for
 from test_pgp import SMALL, make_mesh
 
@@ -37,7 +38,7 @@ def test_eq9_noise_is_sigma_r_plus_sqrt_trace():
     lp = lp.at[a].set(np.log(0.5)).at[b].set(np.log(0.5))
     p = PGPParams(r_est=3.0, sigma_r=0.3)
     cfg, prm, *_ = prepare(make_mesh(n=4, k=2), p, None, mode="parametric")
-    pos, lw, sig = _hypotheses(cfg, prm, lp[None], cells)
+    pos, lw, sig = hypotheses(cfg, prm, lp[None], cells)
     np.testing.assert_allclose(pos[0, 0], [0.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(lw[0], [0.0])
     np.testing.assert_allclose(sig[0], 0.3 + 1.0)  # tr P = var_x = 1 m^2

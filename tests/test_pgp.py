@@ -166,7 +166,7 @@ def test_epoch_without_ranges_is_prediction_only():
 
 def test_no_recompilation_across_sigma_r_and_tau():
     ds = make_mesh(noise=0.2, seed=8)
-    f = eqx.filter_jit(eqx.debug.assert_max_traces(pgp._filter, max_traces=1))
+    f = eqx.filter_jit(eqx.debug.assert_max_traces(pgp.filter_epochs, max_traces=1))
     outs = []
     for sigma_r, tau in [(0.5, 0.8), (0.3, 0.5), (0.8, 0.95)]:
         cfg, prm, inp, lp0, _ = prepare(ds, PGPParams(**{**SMALL, "sigma_r": sigma_r, "tau": tau}), None)

@@ -39,11 +39,11 @@ def site(rng, k=12, n=9, span=16.0, limit=9.0, noise=0.05):
 def run_local(ds, params):
     """`run_pgp`'s local path: (cfg, per-epoch outputs, final covariance), nodes in filter order."""
     p = PGPParams(**params)
-    setup = pgp._local_setup(ds, p, (0, 1, 2), "pgp", False)
+    setup = pgp.local_setup(ds, p, (0, 1, 2), "pgp", False)
     assert setup is not None
     order, z, dt, lattice, wide = setup
     n = ds.n_nodes
-    allowed, need = pgp._neighbour_sets(p, n)
+    allowed, need = pgp.neighbour_sets(p, n)
     cfg, kind, log_cells, nbrs = L.setup(p, n, z, allowed, lattice, wide)
     prm = pgp.FilterParams(*(jnp.asarray(getattr(p, f), float) for f in pgp.NUMERIC))
     _, out, cov = L.run_local(cfg, prm, jnp.asarray(allowed), jnp.asarray(need, float), kind, log_cells, nbrs, z, dt)
@@ -81,15 +81,15 @@ def test_local_grids_equal_the_full_grid_where_they_hold_the_mass(rng):
 def test_auto_takes_local_grids_for_large_sites_only(rng):
     ds = site(rng)
     p = PGPParams(**SMALL)
-    assert pgp._local_setup(ds, p, (0, 1, 2), "pgp", False) is not None
+    assert pgp.local_setup(ds, p, (0, 1, 2), "pgp", False) is not None
     # sites within one radio range (torgau's hall) keep the global grid: their results are unchanged
     short = dict(SMALL, local_m=100.0)
-    assert pgp._local_setup(ds, PGPParams(**short), (0, 1, 2), "pgp", False) is None
-    assert pgp._local_setup(ds, PGPParams(**dict(SMALL, grid_mode="global")), (0, 1, 2), "pgp", False) is None
+    assert pgp.local_setup(ds, PGPParams(**short), (0, 1, 2), "pgp", False) is None
+    assert pgp.local_setup(ds, PGPParams(**dict(SMALL, grid_mode="global")), (0, 1, 2), "pgp", False) is None
     # modes the local grids do not implement keep the global grid
-    assert pgp._local_setup(ds, p, (0, 1, 2), "parametric", False) is None
-    assert pgp._local_setup(ds, p, (0, 1, 2), "pgp", True) is None
-    assert pgp._local_setup(ds, PGPParams(**dict(SMALL, update_order="gauss-seidel")), (0, 1, 2), "pgp", False) is None
+    assert pgp.local_setup(ds, p, (0, 1, 2), "parametric", False) is None
+    assert pgp.local_setup(ds, p, (0, 1, 2), "pgp", True) is None
+    assert pgp.local_setup(ds, PGPParams(**dict(SMALL, update_order="gauss-seidel")), (0, 1, 2), "pgp", False) is None
 
 
 def test_node_the_filter_cannot_place_is_nan_with_one_line(rng, caplog):

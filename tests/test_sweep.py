@@ -160,10 +160,11 @@ def test_no_recompilation_across_values(monkeypatch, execution):
         monkeypatch.setattr(S, "run_batch", fns[0])
     else:  # one run at a time: the filter (dense: one scan) and the metrics compile once
         fns = [
-            eqx.filter_jit(eqx.debug.assert_max_traces(pgp._filter, max_traces=1)),
+            eqx.filter_jit(eqx.debug.assert_max_traces(pgp.filter_epochs, max_traces=1)),
             eqx.filter_jit(eqx.debug.assert_max_traces(S.reduce_metrics, max_traces=1)),
         ]
         monkeypatch.setattr(pgp, "run_filter", fns[0])
+        monkeypatch.setattr(pgp.epochs, "run_filter", fns[0])  # what `pgp.run_chunked` calls
         monkeypatch.setattr(S, "_reduce_jit", fns[1])
     doc = {
         "epochs": 5,

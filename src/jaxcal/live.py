@@ -346,7 +346,7 @@ class LiveCalibrator:
         """
         from jaxcal.data import Result
         from jaxcal.errors import JaxcalError
-        from jaxcal.mesh.pgp import _software
+        from jaxcal.mesh.pgp import software_version
         from jaxcal.params import as_dict
 
         if self.pgp is None:
@@ -371,7 +371,7 @@ class LiveCalibrator:
             covariance=cov,
             track_time=np.asarray(dataset.time, np.float64),
             track_position=track,
-            software=_software(),
+            software=software_version(),
         )
         from jaxcal.mesh.identify import mask_result
         from jaxcal.mesh.pgp import with_pair_covariance

@@ -283,7 +283,7 @@ class LocalGroup:
 def local_metrics(dataset: MeshDataset, config: str | None, params: pgp.PGPParams, method: str) -> dict[str, float]:
     """The sweep's metrics of one `pgp.run_pgp` as `calibrate` runs it (node-local grids); `nlpl` NaN."""
     res, _ = pgp.run_pgp(dataset, params, config, mode=method, posterior=False)
-    order = pgp._node_order(dataset.n_nodes, dataset.config(config))
+    order = pgp.node_order(dataset.n_nodes, dataset.config(config))
     est = jnp.asarray(np.asarray(res.track_position)[:, order])
     truth = jnp.asarray(truth_in_filter_order(dataset, config, order), est.dtype)
     have = np.isfinite(np.asarray(est)).all(-1)[:, 1:]

@@ -169,12 +169,12 @@ def heldout_pair_errors(
 
 def advance(cfg, prm, inp, st, start: int, stop: int | None = None):
     """Epochs `start:stop` of calibrate's run from state `st` -> (state, FilterOut): the windowed
-    fast path (`pgp.advance_chunked`), else one scan (`pgp._scan_jit`); either continues exactly."""
+    fast path (`pgp.advance_chunked`), else one scan (`pgp.run_scan`); either continues exactly."""
     if cfg.window and not cfg.n_snap:
         return pgp.advance_chunked(cfg, prm, inp, st, start, stop)
     stop = int(inp.z.shape[0]) if stop is None else int(stop)
     part = dataclasses.replace(inp, z=inp.z[start:stop], dt=inp.dt[start:stop])
-    return pgp._scan_jit(cfg, prm, part, st, jnp.asarray(start))
+    return pgp.run_scan(cfg, prm, part, st, jnp.asarray(start))
 
 
 def heldout_split(

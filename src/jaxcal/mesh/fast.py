@@ -1,4 +1,4 @@
-"""Windowed kernels of the fast PGP path (`likelihood="window"`, the default; see `pgp.py`).
+"""Windowed kernels of the fast PGP path (`likelihood="window"`, the default; see `pgp`).
 
 Once every node is localised its posterior is concentrated. The motion update of eq. (7)-(8) only
 reads the `top_k` most probable cells, and every factor of eq. (11) is at most 1 (log <= 0), so the
@@ -16,7 +16,7 @@ full grid (the direct evaluation) and re-centres the windows. No other approxima
 same top-k cells, hypotheses, factors, normalisation and estimate, on fewer cells.
 
 Window cells are indexed like the grid (`ix`-major), so ties in `lax.top_k` resolve as on the full
-grid. Everything here is for one node; `pgp.py` vmaps it.
+grid. Everything here is for one node; `pgp` vmaps it.
 """
 
 from __future__ import annotations

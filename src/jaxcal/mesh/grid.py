@@ -19,7 +19,7 @@ through
 the graph of per-pair median ranges (so every node a chain of ranges can place is covered, and a few
 outliers do not blow the grid up), plus `margin_m`, capped by `extent_m`.
 
-The per-item kernels here (one node, one pair) are plain functions; the filter in `pgp.py` vmaps
+The per-item kernels here (one node, one pair) are plain functions; the filter in `pgp` vmaps
 them.
 `node_loglik` is the one hot function (eq. 11); a faster implementation (FFT ring convolution,
 windows)
@@ -112,7 +112,7 @@ def extent_radius(ranges: np.ndarray, a0: int, margin_m: float, cap_m: float) ->
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             med = np.nanmedian(ranges, axis=0) if ranges.shape[0] else np.full(ranges.shape[1:], np.nan)
-    n = med.shape[0]
+    n = ranges.shape[1]
     dist = np.where(np.isfinite(med), med, np.inf)
     np.fill_diagonal(dist, 0.0)
     for k in range(n):  # Floyd-Warshall: N is small (tens of nodes)

@@ -1,6 +1,6 @@
 """Node-local grids for large networks (issue #26): the PGP filter at a cost that follows the pairs.
 
-The filter of `pgp.py` keeps every node's posterior on one square grid around a0, so its memory and
+The filter of `pgp` keeps every node's posterior on one square grid around a0, so its memory and
 its full-grid epochs grow with the site's area times N (N^2 at constant density), and a site larger
 than `extent_m` is cut off. Here every node has grids of its own, placed where its probability is,
 on the same lattice of cells (global cell indices, a0 at the centre cell; the lattice itself is never
@@ -10,12 +10,12 @@ stored, so the site may be of any size):
   `margin_m` and 1 m: a node lies within radio range of any node it ranged to). A node gets it when it
   first receives ranges from localised neighbours, centred on the most probable cell of the one at the
   shortest range, so the ring of that range lies inside. Until the node is localised its posterior is
-  the product of its factors there (the static prior of `pgp.py`, cell for cell the same values up to
+  the product of its factors there (the static prior of `pgp`, cell for cell the same values up to
   a constant: the full-grid filter's top_k cells at localisation are the same when they lie inside).
 - once localised, each epoch's motion update (eq. 7-8) reads its `top_k` cells and the epoch runs on
   the smallest of three square windows centred on its most probable cell, `window_small_m`,
   `window_m` or the wide L, whose proven bound on the mass outside holds (`fast.outside_bound`, the
-  rule of the windowed path of `pgp.py`, but per node: one node with a wide posterior no longer sends
+  rule of the windowed path of `pgp`, but per node: one node with a wide posterior no longer sends
   every node to the full grid). The wide window's bound fails only when the motion kernel's tail
   reaches L / 2 (never at the defaults); such an epoch is counted in `LocalOut.lost`.
 
@@ -371,7 +371,7 @@ def smooth(cfg, prm, st, raw, loc):
     """Eq. (14) for nodes with an estimate this epoch; returns (estimate, smooth, started, buf).
 
     `cfg`: `smoothing`, `median_window`; `prm.alpha`; `st`: `smooth`, `started`, `buf` (the filter
-    states of `pgp.py` and of this module alike)."""
+    states of `pgp` and of this module alike)."""
     if cfg.smoothing == "none":
         return raw, st.smooth, st.started, st.buf
     buf = st.buf

@@ -1,11 +1,11 @@
 """A batch of PGP runs on the windowed fast path, vmapped: `pgp.run_chunked` for B runs at once.
 
 Under `jax.vmap` a `lax.cond` whose predicate differs between runs evaluates both branches, so one
-vmapped `pgp._filter` pays the full-grid epoch at every epoch of every run. Here the host decides
+vmapped `pgp.filter_epochs` pays the full-grid epoch at every epoch of every run. Here the host decides
 the branch for the whole batch, per step, as `run_chunked` does for one run: the runs whose windows
-hold advance by a vmapped window-only chunk (`pgp._scan_windows`, no full grid in the carry; each
+hold advance by a vmapped window-only chunk (`pgp.scan_windows`, no full grid in the carry; each
 run stops at its own first epoch that cannot run windowed), and only if some run cannot, a vmapped
-full-grid epoch (`pgp._scan`, 1 epoch) advances those runs (the others are masked). Each run keeps
+full-grid epoch (`pgp.scan`, 1 epoch) advances those runs (the others are masked). Each run keeps
 its own epoch counter; its outputs go to a (B, epochs) buffer at its own offset.
 
 Every run takes the same decisions as alone, so its numbers equal `run_chunked`'s up to rounding
@@ -47,7 +47,7 @@ def _window_step(cfg, prm, inp, st, buf, k, ready, n_ep: int, chunk: int):
     n = st.win.shape[0]
     small = dataclasses.replace(st, logpost=jnp.zeros((n, 1, 1), st.logpost.dtype))
     part = dataclasses.replace(inp, z=z, dt=dt)
-    st2, out, done = pgp._scan_windows(cfg, prm, part, small, valid, k)
+    st2, out, done = pgp.scan_windows(cfg, prm, part, small, valid, k)
     st2 = dataclasses.replace(st2, logpost=st.logpost)
     # rows past `done` are rewritten by the steps that compute them
     return st2, _write(buf, out, k, chunk), k + done.astype(k.dtype)
@@ -57,7 +57,7 @@ def _full_step(cfg, prm, inp, st, buf, k, active):
     """One run: one full-grid epoch at epoch k when `active` (else unchanged)."""
     z = jax.lax.dynamic_slice_in_dim(inp.z, k, 1)
     dt = jax.lax.dynamic_slice_in_dim(inp.dt, k, 1)
-    st2, out = pgp._scan(cfg, prm, dataclasses.replace(inp, z=z, dt=dt), st, k)
+    st2, out = pgp.scan(cfg, prm, dataclasses.replace(inp, z=z, dt=dt), st, k)
     st2 = jax.tree.map(lambda a, b: jnp.where(active, a, b), st2, st)
     buf2 = _write(buf, out, k, 1)
     buf2 = jax.tree.map(lambda a, b: jnp.where(active, a, b), buf2, buf)
@@ -111,7 +111,7 @@ def run_lockstep(
 
     Args:
         cfg: the common static config; needs `cfg.window` (the fast path) and no snapshots.
-        prm, inp, logpost0: batched (B, ...) as for `jax.vmap(pgp._filter)`; everything runs on
+        prm, inp, logpost0: batched (B, ...) as for `jax.vmap(pgp.filter_epochs)`; everything runs on
             the device of `logpost0` (the sweep runs one driver per device).
         chunk: epochs per windowed step.
 

@@ -1,6 +1,6 @@
 """Parametric baseline of paper 000, eq. (9): the grid filter with point-estimate neighbours.
 
-Same grid, regions, motion update, estimate and parameters as PGP (`pgp.py`), but each neighbour j
+Same grid, regions, motion update, estimate and parameters as PGP (`pgp`), but each neighbour j
 enters the likelihood of eq. (11) as ONE hypothesis, its eq. (13) estimate, with the range std
 widened
 by its posterior covariance: `sigma_ij = sigma_r + sqrt(tr P_j)` (eq. 9). The receiver's own

@@ -3,7 +3,7 @@
 Written to be obviously correct rather than fast: linear probabilities, Python loops over nodes,
 cells
 and hypotheses, a1 as a genuine 1-D histogram over `[0, d_max]` (eq. 5), a2 on the cells with y >= 0
-(eq. 6), every other node on the whole grid. It follows the conventions documented in `pgp.py`
+(eq. 6), every other node on the whole grid. It follows the conventions documented in `pgp`
 (localisation rule, neighbour sets, update orders, hypothesis truncation, eq. 9 for "parametric").
 Nodes are in filter order: index 0 is a0, 1 is a1, 2 is a2.
 """

@@ -4,7 +4,7 @@ Reverse-mode differentiation of a `lax.scan` over K epochs stores what the backw
 every epoch. With the epoch body `jax.checkpoint`ed (`FilterConfig.remat`) that is one carry per
 epoch: `(nodes, cells)` log posteriors, 12 x 15,129 x 8 B = 1.45 MB at torgau's 0.5 m grid, 2.9 GB
 for 2,000 epochs. Here the K epochs run as an outer `lax.scan` over `ceil(K / S)` segments of S
-epochs, each segment an inner scan (the filter's own `_scan`) wrapped in `jax.checkpoint`: the
+epochs, each segment an inner scan (the filter's own `pgp.scan`) wrapped in `jax.checkpoint`: the
 forward pass keeps only the carries between segments, and the backward pass re-runs one segment at a
 time, keeping its S carries. With S ~ sqrt(K) the memory is ~2 sqrt(K) carries (~130 MB for
 torgau) for one extra forward pass. Same epochs, same numbers as `pgp.run_filter` (tested).
@@ -66,9 +66,9 @@ def filter_segmented(
     q, r = divmod(k, s)
     inner = dataclasses.replace(cfg, remat=True)  # each epoch recomputed in the backward pass
 
-    # pgp._scan is the filter's own epoch scan (no public per-segment entry point exists)
+    # the filter's own epoch scan, one segment
     def run(st, z, dt, k0):
-        return pgp._scan(inner, prm, dataclasses.replace(inp, z=z, dt=dt), st, k0)
+        return pgp.scan(inner, prm, dataclasses.replace(inp, z=z, dt=dt), st, k0)
 
     seg = jax.checkpoint(run)
     st = pgp.init_state(cfg, logpost0) if state is None else state
