@@ -274,6 +274,8 @@ def calibrate_anchor_mean(dataset, p, groups, info, n: int, planar) -> Result:
     a0 = np.array(a0, dtype=float)
     b0 = np.array(b0, dtype=float)
     cov0 = np.array(cov0, dtype=float)
+    # nls's reported covariance, route cells included (`nls.cell_covariances`): the floor gp reports
+    cov0 = nls.cell_covariances(groups, a0, b0, cov0, p_nls)
     # the covariance that sizes the step (fuse, bound): see `bound_clusters`; cov0 stays the reported floor
     cov_b = cov0
     if p.bound_clusters >= 0:

@@ -189,9 +189,11 @@ def calibrate_every_range(dataset, p, groups, info, planar, model: str, fit) -> 
     from jaxcal.trajectory.poses import AnchorRanges
 
     shared = {k: getattr(p, k) for k in ("min_ranges", "planar_tol_m", "planar_ratio", "side")}
-    (a0, cov0, b0, _), nls_codes, _ = nls.solve_all_checked(groups, with_overrides(nls.NLSParams(), shared))
+    p_nls = with_overrides(nls.NLSParams(), shared)
+    (a0, cov0, b0, _), nls_codes, _ = nls.solve_all_checked(groups, p_nls)
     pos, rng_m, mask = (np.asarray(v) for v in (groups.position, groups.range, groups.mask))
     a0, b0, cov0 = (np.array(v, dtype=float) for v in (a0, b0, cov0))
+    cov0 = nls.cell_covariances(groups, a0, b0, cov0, p_nls)  # nls's reported covariance, route cells included
     seeded = np.isfinite(a0).all(axis=1) & np.isfinite(cov0).all(axis=(1, 2))
     w = np.ones_like(rng_m)
     init_a, init_b = a0.copy(), b0.copy()
