@@ -63,6 +63,7 @@ import dataclasses
 import math
 import warnings
 from collections.abc import Callable, Sequence
+from typing import Any, cast
 
 import equinox as eqx
 import jax
@@ -245,6 +246,7 @@ def theta_of(
 
     t = [math.log(sigma_r), math.log(sigma_v), logit(tau)]
     if nlos_weight is not None:
+        assert nlos_mean_m is not None, "nlos_mean_m goes with nlos_weight"
         t += [logit(nlos_weight), math.log(nlos_mean_m)]
     return jnp.asarray(t, dtype)
 
@@ -261,7 +263,10 @@ def objective(theta: Float[Array, " p"], prob: Problem | tuple[Problem, ...]) ->
     consensus reference) or NLPL [nats]; of a tuple of problems (a set of recordings, the same
     kind), the mean of theirs."""
     if isinstance(prob, tuple):
-        return sum(objective(theta, p) for p in prob) / len(prob)
+        total = objective(theta, prob[0])
+        for p in prob[1:]:
+            total = total + objective(theta, p)
+        return total / len(prob)
     prm = _with_theta(prob.prm, theta)
     if prob.kind == "evidence":
         return _heldout_loss(prm, prob)
@@ -314,7 +319,7 @@ def soft_estimates(
     return jax.vmap(G.window_estimate, in_axes=(0, None, None))(lp / est_temp, cells, r_est)
 
 
-def _bfgs(theta0, prob: Problem, rtol: float, atol: float, max_steps: int, on_step=None):
+def _bfgs(theta0, prob: Problem | tuple[Problem, ...], rtol: float, atol: float, max_steps: int, on_step=None):
     """Optimistix BFGS stepped from Python (one objective evaluation per step, its gradient when
     the line search accepts the point), so that a caller can show progress.
 
@@ -329,7 +334,7 @@ def _bfgs(theta0, prob: Problem, rtol: float, atol: float, max_steps: int, on_st
         (theta: the last accepted point, steps, converged, message, value at theta0, value at
         theta).
     """
-    solver = optx.BFGS(rtol=rtol, atol=atol)
+    solver: optx.AbstractMinimiser = optx.BFGS(rtol=rtol, atol=atol)
 
     def fn(theta, args):
         v = objective(theta, args)
@@ -369,7 +374,7 @@ def _bfgs(theta0, prob: Problem, rtol: float, atol: float, max_steps: int, on_st
     if ok:
         message = "converged"
     elif bool(done):
-        message = str(optx.RESULTS[result]).split(".")[0]
+        message = str(cast(Any, optx.RESULTS)[result]).split(".")[0]
     elif small:
         message = f"last step gained < {rtol:g} (relative)"
     elif rejected >= PATIENCE:
@@ -703,7 +708,8 @@ def _guard_set(sets, params, config, objective_name, tuned_params, unmoved, refs
     and of the tuned values per recording -> {accepted, hard_before, hard_after (the means),
     t (pooled), recordings (each one's figures and t), worse (name of a recording whose own
     t < -GUARD_T, else "")}."""
-    before, units_b = [], []
+    before: list[dict] = []
+    units_b: list[Any] = []
     for i, d in enumerate(sets):
         phase("guard: calibrate's runs of the start", i)
         m, u = _check(d, params, config, objective_name, pairs_before[i], refs[i])
@@ -714,7 +720,7 @@ def _guard_set(sets, params, config, objective_name, tuned_params, unmoved, refs
     after: list[dict] = [dict(m) for m in before]
     t, own, worse, accepted = math.nan, [math.nan] * len(sets), "", False
     if not unmoved:  # the optimiser moved: run the tuned values
-        units_a = []
+        units_a: list[Any] = []
         for i, d in enumerate(sets):
             phase("guard: calibrate's runs of the tuned values", i)
             if key == "heldout_m":

@@ -75,6 +75,7 @@ are the half-integer ones only (no nu = 5/3).
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -230,8 +231,8 @@ def _fit_hyper(x, y, mask, init: Hyper, nu: float, jitter: float, max_steps: int
         # The objective is scaled by 1/n so that the BFGS tolerances mean the same for any n.
         return neg_log_marginal_likelihood(h, x, y, mask, nu, jitter) / jnp.maximum(jnp.sum(mask), 1)
 
-    solver = optx.BFGS(rtol=1e-6, atol=1e-6)
-    sol = optx.minimise(loss, solver, init, max_steps=max_steps, throw=False)
+    solver: optx.AbstractMinimiser = optx.BFGS(rtol=1e-6, atol=1e-6)
+    sol: optx.Solution = optx.minimise(loss, solver, init, max_steps=max_steps, throw=False)
     ok = jnp.isfinite(loss(sol.value, None))
     return jax.tree.map(lambda a, b: jnp.where(ok, a, b), sol.value, init), S.outcome(sol)
 
@@ -474,7 +475,7 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
         )
     if p.model == "path" and (p.mean != "anchor" or p.nu not in (0.5, 1.5)):
         raise JaxcalError(f"parameter model=path needs mean=anchor and nu 0.5 or 1.5, got {p.mean!r}, {p.nu}")
-    matern(jnp.zeros(1), 1.0, 1.0, p.nu)  # validates nu
+    matern(jnp.zeros(1), jnp.asarray(1.0), jnp.asarray(1.0), p.nu)  # validates nu
     if p.grid < 2 or p.top_k < 1 or p.top_k > p.grid**2 or not 0.0 < p.shrink < 1.0 or p.tol_m <= 0:
         raise JaxcalError("parameters grid >= 2, 1 <= top_k <= grid^2, 0 < shrink < 1, tol_m > 0 required")
     groups, info = prepare_poses(dataset, p)
@@ -512,7 +513,9 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
             progress(1)
         return out
     grid_z = 1 if planar.all() else p.grid
-    est = cov = hyp = None
+    est: Any = None
+    cov: Any = None
+    hyp: Any = None
     half_prev = np.full((a_n, 3), np.inf)
     for stage in range(p.stages):
         x = np.zeros((a_n, n, 3))
@@ -542,12 +545,11 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
         if stage == 0:  # the same (static) number of rounds in every stage: one compilation
             n_rounds = max(1, int(math.ceil(math.log(half.max() / p.tol_m) / math.log(1.0 / p.shrink))))
         args = tuple(jnp.asarray(a) for a in (x, r, m, centre, half, planar))
-        (est, cov, hyp, codes), codes, steps = S.retry_unconverged(
-            lambda k, args=args, n_rounds=n_rounds: _fit_stage(
-                args, eqx.tree_at(lambda q: q.max_steps, p, k), n_rounds, grid_z
-            ),
-            p.max_steps,
-        )
+
+        def stage_fit(k: int, args=args, n_rounds=n_rounds):
+            return _fit_stage(args, eqx.tree_at(lambda q: q.max_steps, p, k), n_rounds, grid_z)
+
+        (est, cov, hyp, codes), codes, steps = S.retry_unconverged(stage_fit, p.max_steps)
         if progress is not None:
             jax.block_until_ready(est)
             progress(1)
@@ -566,5 +568,6 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
 
 def _fit_stage(args, p: GPParams, n_rounds: int, grid_z: int):
     """One stage of `_calibrate_all` for `jaxcal.solver.retry_unconverged`: (output, outcome codes)."""
-    out = _calibrate_all(*args, p, n_rounds, grid_z)
+    x, r, mask, centre, half, planar = args
+    out = _calibrate_all(x, r, mask, centre, half, planar, p, n_rounds, grid_z)
     return out, out[3]

@@ -50,6 +50,7 @@ Imports `nls` (for its covariance); `common.finish` imports this module inside t
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import equinox as eqx
@@ -136,7 +137,7 @@ def _cauchy_fit(pos, rng, mask, x0, c, max_steps: int):
     def residual(x, _):
         return _cauchy_residual(_dist(pos, x[:3]) + x[3] - rng, c, mask)
 
-    sol = optx.least_squares(
+    sol: optx.Solution = optx.least_squares(
         residual, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10), x0, max_steps=max_steps, throw=False
     )
     return sol.value, S.outcome(sol)
@@ -218,8 +219,10 @@ def _compare_all(pos, rng, mask, est, n_clusters: int, min_scale: float, max_ste
 
 
 @eqx.filter_jit
-def _profile_all(pos, rng, mask, x0, c, centre, n, sd_n, n_clusters: int, max_steps: int, n_grid: int):
-    return jax.vmap(lambda *a: _profile_one(*a, n_clusters, max_steps, n_grid))(pos, rng, mask, x0, c, centre, n, sd_n)
+def _profile_all(arrays: tuple, n_clusters: int, max_steps: int, n_grid: int):
+    """`_profile_one` vmapped over anchors; `arrays` = (pos, rng, mask, x0, c, centre, n, sd_n), each batched."""
+    one = functools.partial(_profile_one, n_clusters=n_clusters, max_steps=max_steps, n_grid=n_grid)
+    return jax.vmap(one)(*arrays)
 
 
 def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
@@ -273,7 +276,7 @@ def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
         )
     )
     distinct = (code == S.CONVERGED) & (np.linalg.norm(x1 - x0, axis=1) > p.mirror_min_sep_m) & np.isfinite(z)
-    for k, a in enumerate(todo):
+    for k, a in enumerate(todo.tolist()):
         if not distinct[k] or planar[a]:
             continue
         out.checked[a], out.z[a], out.other[a] = True, z[k], x1[k]
@@ -303,7 +306,7 @@ def _apply_profile(out: SideCheck, todo, planar, data, fit, p) -> None:
     pts, zk, codes = (
         np.asarray(v)
         for v in _profile_all(
-            *(jnp.asarray(v) for v in (pos[todo], rng[todo], mask[todo], x0b, scale, centre, normal, sd_n)),
+            tuple(jnp.asarray(v) for v in (pos[todo], rng[todo], mask[todo], x0b, scale, centre, normal, sd_n)),
             int(getattr(p, "n_clusters", 16)),
             100,
             int(p.mirror_profile),

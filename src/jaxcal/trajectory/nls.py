@@ -122,7 +122,7 @@ def solve_anchor(pos, rng, mask, init, p: NLSParams):
         sw = args
         return sw * (_dist(pos, x[:3]) + use_bias * x[3] - rng)
 
-    solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)
+    solver: optx.AbstractLeastSquaresSolver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)
     x = jnp.concatenate([init, jnp.zeros(1)])
     w = mask.astype(pos.dtype)
 

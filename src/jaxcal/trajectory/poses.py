@@ -224,13 +224,13 @@ def estimate_time_offset(
     r = np.asarray(ds.range, dtype=float)
     keep = np.isfinite(r)
     # Evenly spaced subsample per anchor (host side) to bound the cost of each objective evaluation.
-    sel = []
+    picked: list[np.ndarray] = []
     for a in range(ds.n_anchors):
         idx = np.nonzero(keep & (ds.range_anchor == a))[0]
         if idx.size > max_per_anchor:
             idx = idx[np.linspace(0, idx.size - 1, max_per_anchor).round().astype(int)]
-        sel.append(idx)
-    sel = np.sort(np.concatenate(sel))
+        picked.append(idx)
+    sel = np.sort(np.concatenate(picked))
     n_per = int(max(1, max((np.sum(ds.range_anchor[sel] == a) for a in range(ds.n_anchors)), default=1)))
     args = (
         model,
