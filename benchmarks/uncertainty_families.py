@@ -16,8 +16,9 @@ per method: coverage at 95 % over well-connected nodes, NEES per dof (median and
 nodes are all well connected, and over all networks), the count of confidently wrong nodes (a finite
 estimate and covariance with the truth outside its 95 % ellipse) among the weak nodes.
 
-Method `pgp-grid`: pgp's estimate with the grid posterior's own covariance (moments + cell^2 / 12, what
-`--method pgp` reported before its pair-level widening).
+Methods `pgp-grid`, `parametric-grid`: the filter's estimate with the grid posterior's own covariance (moments +
+cell^2 / 12, what `--method pgp` reported before its pair-level widening and `--method parametric` before the
+eighth round). `--save DIR` pickles every result (offline rechecks of a covariance formula at the same estimates).
 
 Usage:
     python benchmarks/uncertainty_families.py [--seeds 0-23] [--methods batch,pgp,pgp+batch,batch:loss=mixture]
@@ -151,11 +152,12 @@ def run(method: str, ds):
 
     name, _, sets = method.partition(":")
     params = dict(kv.split("=", 1) for kv in sets.split(",") if kv)
-    if name == "pgp-grid":  # pgp's estimate with the grid posterior's own covariance (before issue #24)
+    if name in ("pgp-grid", "parametric-grid"):  # the estimate with the grid posterior's own covariance
         from jaxcal.mesh.identify import mask_result
         from jaxcal.mesh.pgp import run_pgp
 
-        return mask_result(run_pgp(ds, params, "f012", mode="pgp")[0], ds.range, warn=False)
+        mode = name.removesuffix("-grid")
+        return mask_result(run_pgp(ds, params, "f012", mode=mode, posterior=False)[0], ds.range, warn=False)
     return calibrate(ds, name, params, "f012")
 
 
@@ -200,6 +202,7 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", default="batch,pgp,pgp+batch,batch:loss=mixture")
     ap.add_argument("--pair-offset", type=float, default=0.04)
     ap.add_argument("--family", default="nlos", choices=sorted(FAMILIES))
+    ap.add_argument("--save", default=None, help="folder: pickle each (seed, method) result there (offline rechecks)")
     args = ap.parse_args(argv)
     import logging
 
@@ -212,6 +215,13 @@ def main(argv=None) -> int:
         for m in methods:
             t0 = time.perf_counter()
             res = run(m, ds)
+            if args.save:
+                import os
+                import pickle
+
+                os.makedirs(args.save, exist_ok=True)
+                with open(os.path.join(args.save, f"{args.family}-{seed}-{m.replace(':', '_')}.pkl"), "wb") as f:
+                    pickle.dump(res, f)
             nodes = node_figures(res, ds)
             for r in nodes:
                 r["well"] = bool(well[r["node"]])

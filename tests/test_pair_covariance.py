@@ -51,3 +51,24 @@ def test_an_estimate_off_the_fit_carries_its_displacement(rng):
     free = np.flatnonzero(np.r_[[False, False, True, False], np.ones(2 * len(pos) - 4, bool)])
     fit = polish(est, i, j, z, free, 0.3)
     assert np.abs(fit - pos).max() < 0.1  # the fit returns to the pairs' positions
+
+
+def test_an_estimate_in_a_wrong_basin_is_measured_against_the_ranges_fit(rng):
+    """A filter that diverged (nodes swapped, metres off): polishing from its estimate stays in the wrong
+    basin; `robust_fit` also starts from the pairs' MDS layout and keeps the lower cost, so every node's
+    displacement from the fit, and the truth, is in its covariance."""
+    from jaxcal.mesh.pair_covariance import robust_fit
+
+    pos, r = network(rng, outlier_m=0.0)
+    est = pos.copy()
+    est[3:] = pos[np.r_[4 : len(pos), 3]]  # nodes 3.. each at the next one's place
+    i, j = np.triu_indices(len(pos), 1)
+    z = np.median(r[:, i, j], axis=0)
+    free = np.flatnonzero(np.r_[[False, False, True, False], np.ones(2 * len(pos) - 4, bool)])
+    assert np.abs(polish(est, i, j, z, free, 0.3) - pos).max() > 1.0  # polish alone: the wrong basin
+    assert np.abs(robust_fit(est, i, j, z, free, 0.3, (0, 1, 2)) - pos).max() < 0.1
+    cov = position_covariance(r, est, (0, 1, 2), robust_scale=0.3)
+    e = est[3:] - pos[3:]
+    assert np.all(np.trace(cov[3:], axis1=1, axis2=2) >= 0.9 * np.sum(e * e, axis=1))  # metres off, metres wide
+    nees = [ek @ np.linalg.solve(ck, ek) for ek, ck in zip(e, cov[3:], strict=True)]
+    assert np.median(nees) <= 5.991  # most truths inside their 95 % ellipse (the fit's own error is ~5 % outside)

@@ -260,6 +260,7 @@ def position_covariance(
     anchors: tuple[int, int, int],
     offset: bool = False,
     robust_scale: float | None = None,
+    displacement: str = "node",
 ) -> np.ndarray:
     """(N, D, D) covariance of a mesh estimate `position` (frame `anchors`) under per-pair systematic
     errors. Without a fitted range offset (`offset=False`) a common offset of all ranges is one more
@@ -269,8 +270,9 @@ def position_covariance(
 
     With `robust_scale` None: the covariance of an estimator that weighs every measured pair alike
     (least-squares influence), at `position` itself. With a scale s [m] (e.g. a grid filter's sigma_r,
-    whose estimate is not a least-squares fit): the pairs' medians are first fitted from `position` by
-    Cauchy-robust least squares of scale s over the free coordinates (`polish`), the covariance is that
+    whose estimate is not a least-squares fit): the pairs' medians are first fitted by Cauchy-robust least
+    squares of scale s over the free coordinates (`robust_fit`: from `position` and from the pairs' MDS
+    layout, whichever ends lower), the covariance is that
     of this fit (pairs weighted by their Cauchy weights 1 / (1 + (e / s)^2) at it, so a pair metres off
     neither moves it nor sizes the others' errors), and each node's displacement d from the fit to
     `position` is added as d d^T (the estimate's error is the fit's plus d)."""
@@ -296,7 +298,7 @@ def position_covariance(
     free = np.flatnonzero(mask.ravel())
     x_fit, w = x, np.ones(i.size)
     if robust_scale is not None:
-        x_fit = polish(x, i, j, zmed, free, float(robust_scale))
+        x_fit = robust_fit(x, i, j, zmed, free, float(robust_scale), anchors)
     diff = x_fit[i] - x_fit[j]
     dist = np.linalg.norm(diff, axis=1)
     u = diff / np.maximum(dist, 1e-12)[:, None]
@@ -320,9 +322,85 @@ def position_covariance(
     cov_all[np.ix_(free, free)] = cov[: free.size, : free.size]
     for node in np.flatnonzero(placed):
         out[node] = cov_all[node * d : (node + 1) * d, node * d : (node + 1) * d]
-        dev = x[node] - x_fit[node]
-        out[node] = out[node] + np.outer(dev, dev)
+    dev = np.where(mask, x - x_fit, 0.0)
+    out = out + _displacement_term(dev, mask, displacement)
     return 0.5 * (out + np.swapaxes(out, 1, 2))
+
+
+def _displacement_term(dev: np.ndarray, mask: np.ndarray, how: str) -> np.ndarray:
+    """(N, D, D) the covariance term of the estimate's displacement `dev` (N, D) from the robust fit (zero on the
+    coordinates the frame fixes, `mask` False)."""
+    node = dev[:, :, None] * dev[:, None, :]
+    if how == "node":
+        return node
+    if how == "none":
+        return np.zeros_like(node)
+    c = np.abs(dev[mask & np.isfinite(dev)])
+    var = (1.4826 * np.median(c)) ** 2 if c.size else 0.0
+    pooled = np.zeros_like(node)
+    k, a = np.nonzero(mask)
+    pooled[k, a, a] = var
+    if how == "pooled":
+        return pooled
+    if how == "pooled_rms":
+        var2 = float(np.mean(c**2)) if c.size else 0.0
+        pooled[k, a, a] = var2
+        return pooled
+    if how == "pooled+node":
+        from jaxcal.mesh.batch import covariance_union  # noqa: PLC0415
+
+        return np.stack(
+            [
+                covariance_union(pooled[q], node[q]) if np.isfinite(node[q]).all() else node[q]
+                for q in range(node.shape[0])
+            ]
+        )
+    raise ValueError(f"unknown displacement term {how!r}")
+
+
+def robust_fit(
+    x: np.ndarray, i: np.ndarray, j: np.ndarray, z: np.ndarray, free: np.ndarray, scale: float, anchors
+) -> np.ndarray:
+    """The Cauchy-robust fit of the pair ranges z that an estimate `x` (N, D) is measured against: `polish`
+    from `x` and from the classical MDS layout of the pair ranges (shortest paths for the missing pairs,
+    moved into the frame of `anchors`), whichever ends at the lower robust cost. From `x` alone, an estimate
+    that is metres off in a wrong basin (a filter that diverged, a node on its mirror side) would be
+    polished into that basin's local minimum, and its displacement from "the fit" would say it is right."""
+    from scipy.sparse.csgraph import shortest_path  # noqa: PLC0415
+
+    from jaxcal.mesh.frame import to_frame  # noqa: PLC0415
+
+    def cost(y):
+        e = np.linalg.norm(y[i] - y[j], axis=1) - z
+        return float(np.sum(np.log1p((e / scale) ** 2)))
+
+    def fit(start):  # polished, and in the frame's half plane (a2 at y >= 0: the mirror fits the ranges alike)
+        y = polish(start, i, j, z, free, scale)
+        if y.shape[1] == 2 and y[anchors[2], 1] < 0:
+            y = y * np.array([1.0, -1.0])
+        return y
+
+    best = fit(x)
+    n, d = x.shape
+    placed = np.isfinite(x).all(axis=1)
+    g = np.zeros((n, n))
+    g[i, j] = g[j, i] = np.maximum(z, 1e-9)
+    sub = np.flatnonzero(placed)
+    dist = shortest_path(g[np.ix_(sub, sub)], method="D", directed=False)
+    if not np.isfinite(dist).all():
+        return best
+    c = np.eye(sub.size) - 1.0 / sub.size
+    lam, vec = np.linalg.eigh(-0.5 * c @ (dist * dist) @ c)
+    start = np.full_like(x, np.nan)
+    start[sub] = vec[:, ::-1][:, :d] * np.sqrt(np.maximum(lam[::-1][:d], 0.0))
+    try:
+        start = to_frame(start, *anchors)
+    except (ValueError, ArithmeticError):
+        return best
+    if not np.isfinite(start[sub]).all():
+        return best
+    other = fit(start)
+    return other if cost(other) < cost(best) - 1e-9 * max(1.0, cost(best)) else best
 
 
 def polish(x: np.ndarray, i: np.ndarray, j: np.ndarray, z: np.ndarray, free: np.ndarray, scale: float) -> np.ndarray:
