@@ -24,7 +24,9 @@ Usage:
     python benchmarks/uncertainty_families.py [--seeds 0-23] [--methods batch,pgp,pgp+batch,batch:loss=mixture]
         [--family nlos|los|walls4]
 
-`--family los`: the same without walls (every pair LOS); `walls4`: 14 nodes and two more walls.
+`--family los`: the same without walls (every pair LOS); `walls4`: 14 nodes and two more walls; `weak`: the
+`nlos` family made awkward (issue #24): n9 ranges only its two nearest nodes, n8 only its nearest, and the
+frame nodes n1 and n2 never range each other (weak nodes must be NaN rows, or hold the truth).
 """
 
 from __future__ import annotations
@@ -43,11 +45,20 @@ FAMILIES = {
     "nlos": dict(walls=WALLS, n=10),
     "los": dict(walls=(), n=10),
     "walls4": dict(walls=WALLS + (((0.0, 10.0), (8.0, 10.0)), ((22.0, 10.0), (30.0, 10.0))), n=14),
+    # awkward (issue #24): n9 ranges only its two nearest nodes, n8 only its nearest, a1 and a2 never range
+    # each other
+    "weak": dict(walls=WALLS, n=10, weak=True),
 }
 
 
 def network(
-    seed: int, n: int = 10, n_epochs: int = 400, pair_offset_m: float = 0.04, lost_nlos: float = 0.5, walls=WALLS
+    seed: int,
+    n: int = 10,
+    n_epochs: int = 400,
+    pair_offset_m: float = 0.04,
+    lost_nlos: float = 0.5,
+    walls=WALLS,
+    weak: bool = False,
 ):
     """One family member: a `MeshDataset` (frame (0, 1, 2) in its configs) with per-pair offsets."""
     from jaxcal.data import MeshDataset
@@ -64,6 +75,13 @@ def network(
     iu, ju = np.triu_indices(n, 1)
     nlos = ~los[iu, ju]
     lost = nlos & (rng.random(iu.size) < lost_nlos)
+    if weak:  # node n-1 keeps its two nearest neighbours, n-2 its nearest; the pair (1, 2) is never measured
+        keep = {(n - 1, int(k)) for k in np.argsort(d[n - 1])[1:3]} | {(n - 2, int(np.argsort(d[n - 2])[1]))}
+        for q, (a, b) in enumerate(zip(iu, ju, strict=True)):
+            if (a, b) == (1, 2) or (b in (n - 2, n - 1) and (b, a) not in keep) or (a == n - 2 and (a, b) not in keep):
+                lost[q] = True
+            elif (b, a) in keep or (a, b) in keep:
+                lost[q] = False
     sc = MeshScenario(
         name=f"family-{seed}",
         hall=(30.0, 20.0),
