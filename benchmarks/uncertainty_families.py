@@ -26,7 +26,8 @@ Usage:
 
 `--family los`: the same without walls (every pair LOS); `walls4`: 14 nodes and two more walls; `weak`: the
 `nlos` family made awkward (issue #24): n9 ranges only its two nearest nodes, n8 only its nearest, and the
-frame nodes n1 and n2 never range each other (weak nodes must be NaN rows, or hold the truth).
+frame nodes n1 and n2 never range each other (weak nodes must be NaN rows, or hold the truth); `weaknodes`: the
+same weak nodes, the frame pairs as measured.
 """
 
 from __future__ import annotations
@@ -48,6 +49,8 @@ FAMILIES = {
     # awkward (issue #24): n9 ranges only its two nearest nodes, n8 only its nearest, a1 and a2 never range
     # each other
     "weak": dict(walls=WALLS, n=10, weak=True),
+    # the same weak nodes, the frame pairs as measured
+    "weaknodes": dict(walls=WALLS, n=10, weak="nodes"),
 }
 
 
@@ -58,7 +61,7 @@ def network(
     pair_offset_m: float = 0.04,
     lost_nlos: float = 0.5,
     walls=WALLS,
-    weak: bool = False,
+    weak: bool | str = False,
 ):
     """One family member: a `MeshDataset` (frame (0, 1, 2) in its configs) with per-pair offsets."""
     from jaxcal.data import MeshDataset
@@ -78,7 +81,8 @@ def network(
     if weak:  # node n-1 keeps its two nearest neighbours, n-2 its nearest; the pair (1, 2) is never measured
         keep = {(n - 1, int(k)) for k in np.argsort(d[n - 1])[1:3]} | {(n - 2, int(np.argsort(d[n - 2])[1]))}
         for q, (a, b) in enumerate(zip(iu, ju, strict=True)):
-            if (a, b) == (1, 2) or (b in (n - 2, n - 1) and (b, a) not in keep) or (a == n - 2 and (a, b) not in keep):
+            frame_pair = (a, b) == (1, 2) and weak is True
+            if frame_pair or (b in (n - 2, n - 1) and (b, a) not in keep) or (a == n - 2 and (a, b) not in keep):
                 lost[q] = True
             elif (b, a) in keep or (a, b) in keep:
                 lost[q] = False

@@ -318,6 +318,11 @@ def position_covariance(
         shared = spread[:, None]
     else:
         shared = np.column_stack([spread, np.ones(i.size)])
+    if i.size - jac.shape[1] < 3 + shared.shape[1]:
+        # fewer redundant pairs than variance components: the residuals cannot size the pairs' errors (with
+        # only the frame nodes placed, 3 pairs for 3 coordinates, the shared amplitudes came out at 10^4-10^5 m
+        # in one direction and nothing in the other)
+        return out
     cov, _ = pair_covariance(jac, e, w, spread, i, j, n, np.zeros(jac.shape[1]), shared)
     cov_all = np.zeros((n * d, n * d))
     cov_all[np.ix_(free, free)] = cov[: free.size, : free.size]
