@@ -104,7 +104,7 @@ from jaxcal.trajectory.gp_kernel import (
     stratified_subsample,
     to_target,
 )
-from jaxcal.trajectory.poses import prepare_poses
+from jaxcal.trajectory.nls import prepare_offset
 
 __all__ = [
     "GPParams",
@@ -478,7 +478,7 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
     matern(jnp.zeros(1), jnp.asarray(1.0), jnp.asarray(1.0), p.nu)  # validates nu
     if p.grid < 2 or p.top_k < 1 or p.top_k > p.grid**2 or not 0.0 < p.shrink < 1.0 or p.tol_m <= 0:
         raise JaxcalError("parameters grid >= 2, 1 <= top_k <= grid^2, 0 < shrink < 1, tol_m > 0 required")
-    groups, info = prepare_poses(dataset, p)
+    groups, info = prepare_offset(dataset, p)
     pos = np.asarray(groups.position)
     rng_m = np.asarray(groups.range)
     mask = np.asarray(groups.mask)
