@@ -181,10 +181,12 @@ class GPParams(TrajectoryParams):
         block, max_ranges: `mean=anchor` only: the GP's covariance is block-diagonal over blocks
             of `block` consecutive ranges, on at most `max_ranges` ranges per anchor (evenly thinned
             in time); `block=0` (default): one dense GP on the stratified `n_train` subsample.
+        estimate_offset: as for `nls` (on by default: the offset is fitted with `nls`'s anchors first).
         min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s: as for `ls`, and so are
-            max_gap_s, time_offset_s, estimate_offset, max_offset_s.
+            max_gap_s, time_offset_s, max_offset_s.
     """
 
+    estimate_offset: bool = True
     target: str = "range"
     mean: str = "anchor"
     nu: float = 1.5
