@@ -240,3 +240,43 @@ def test_undetermined_frame_warning_names_links_and_suggests_a_frame(rng, caplog
     (line,) = [r.getMessage() for r in caplog.records]
     assert "frame (n0/n1/n2) not determined" in line and "n0-n2" in line and "n2 never ranged" in line
     assert "suggested frame" in line and "--config auto" in line and "fixes 6/7" in line
+
+
+def test_filter_frame_reaches_the_nodes_a_filter_can_localise(rng):
+    """n1-n2 never ranged (so the filter needs a proxy frame) and n7 ranges only n0 and n6: the triple
+    (n6, n0, n7) fixes every rigid node, but a filter started there localises nothing else (no node hears
+    n7); `filter_frame` picks a triple from which the frame nodes and all the rest are reached, and pgp
+    places every node but n7."""
+    from jaxcal.mesh import pgp
+
+    pos = np.array([[0, 0], [14, 0], [6, 11], [12, 10], [3, -8], [16, -7], [-6, 5], [-7, -4]], float)
+    pos = pos + rng.uniform(-1.5, 1.5, pos.shape)  # a well-conditioned frame (a2 metres off the a0-a1 line)
+    d = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
+    r = d[None] + 0.1 * rng.standard_normal((40, 8, 8))
+    for i, j in [(1, 2)] + [(7, k) for k in (1, 2, 3, 4, 5)]:
+        r[:, i, j] = r[:, j, i] = np.nan
+    ds, truth = mesh_of(r, pos), to_frame(pos, 0, 1, 2)
+    adj = I.measured_pairs(ds.range)
+    tri = I.filter_frame(ds.range, (0, 1, 2))
+    reach = I.trilateration_reach(adj, tri, 3)
+    assert tri != (0, 1, 2) and 7 not in tri
+    assert reach[:7].all() and not reach[7]
+    res, info = pgp.run_pgp(ds, {"cell_m": 1.0})
+    assert np.isfinite(res.position[:7]).all()
+    assert np.linalg.norm(res.position[:7] - truth[:7], axis=1).max() < 1.5
+
+
+def test_apply_says_when_fixed_nodes_are_left_unplaced(rng, caplog):
+    from jaxcal.mesh import closed_form
+
+    ds, _ = _noisy_mesh(rng, 6, 10, [])
+    res = closed_form.calibrate(ds)
+    pos = np.array(res.position, copy=True)
+    pos[3] = np.nan  # fixed by the ranges, not placed by the method
+    ident = I.identify_ranges(ds.range, (0, 1, 2))
+    import dataclasses
+
+    with caplog.at_level(logging.WARNING, logger="jaxcal"):
+        I.apply(dataclasses.replace(res, position=pos), ident)
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1 and "1 of the 6 nodes the ranges fix left unplaced by the method (n3)" in lines[0]

@@ -51,6 +51,7 @@ __all__ = [
     "undetermined_frame_result",
     "with_auto_config",
     "filter_frame",
+    "trilateration_reach",
     "first_complete_epoch",
     "FRAME_UNDETERMINED",
 ]
@@ -241,8 +242,28 @@ def _triangle_quality(d: np.ndarray, tri) -> float:
     return float(4.0 * np.sqrt(3.0) * area / den) if den > 0 else 0.0
 
 
+def trilateration_reach(adj: np.ndarray, tri, min_refs: int) -> np.ndarray:
+    """(N,) bool: the nodes a grid filter started from the frame `tri` can localise, in the order it does
+    (a node localises once it has ranged `min_refs` localised nodes; the three frame nodes from the
+    frame rule). Rigidity (`identify`) can fix more: a node reached only through a node it ranges
+    alone is rigid in the network but never heard by the filter from enough localised neighbours.
+
+    Args:
+        adj: (N, N) bool measured pairs (`measured_pairs`). tri: the frame (a0, a1, a2).
+        min_refs: localised neighbours a node needs (`PGPParams.min_refs`).
+    """
+    a = np.asarray(adj, dtype=bool)
+    placed = np.zeros(a.shape[0], dtype=bool)
+    placed[list(tri)] = True
+    while True:
+        new = ~placed & (a[:, placed].sum(axis=1) >= min_refs)
+        if not new.any():
+            return placed
+        placed |= new
+
+
 def choose_frame(
-    range_m: np.ndarray, dim: int = 2, max_candidates: int = 12, exclude=()
+    range_m: np.ndarray, dim: int = 2, max_candidates: int = 12, exclude=(), min_refs: int = 0, need=()
 ) -> tuple[tuple[int, int, int], Identifiability] | None:
     """The best frame triple of a recording: most nodes fixed, then best connected and conditioned.
 
@@ -257,6 +278,10 @@ def choose_frame(
         range_m: (K, N, N) ranges [m]. dim: 2 or 3.
         max_candidates: how many of the best-connected nodes to combine.
         exclude: triples (as given, any order) not to return.
+        min_refs: > 0: for a grid filter: rank first by whether every node of `need` is in the triple's
+            `trilateration_reach`, then by the reach's size, before the nodes fixed.
+        need: nodes a filter run in the triple's frame must localise (the configuration's frame nodes,
+            through which its track is moved back).
 
     Returns:
         ((a0, a1, a2), its Identifiability), or None when no triple has all three pairs measured.
@@ -294,7 +319,10 @@ def choose_frame(
         a1 = max(rest, key=lambda v: (share[a0, v], -v))
         a2 = next(v for v in rest if v != a1)
         ident = identify(adj, (a0, a1, a2), dim)
-        score = (ident.n_fixed, min(share[i, j], share[i, l_], share[j, l_]) * q * deg[list(tri)].mean())
+        score: tuple = (ident.n_fixed, min(share[i, j], share[i, l_], share[j, l_]) * q * deg[list(tri)].mean())
+        if min_refs > 0:
+            reach = trilateration_reach(adj, tri, min_refs)
+            score = (bool(reach[list(need)].all()), int(reach.sum()), *score)
         if best is None or score > best[0]:
             best = (score, (a0, a1, a2), ident)
     return None if best is None else (best[1], best[2])
@@ -365,6 +393,16 @@ def apply(result, ident: Identifiability, method: str | None = None, warn: bool 
             line = describe(ident, result.ids, method or result.method, sug)
             if line:
                 logging.getLogger("jaxcal").warning("%s", line)
+    missing = ident.fixed & ~np.isfinite(np.asarray(result.position, dtype=np.float64)).all(axis=1)
+    if warn and missing.any():  # the ranges fix them, the method did not place them: say so
+        ids = [str(v) for v in result.ids]
+        logging.getLogger("jaxcal").warning(
+            "%s: %d of the %d nodes the ranges fix left unplaced by the method (%s)",
+            method or result.method,
+            int(missing.sum()),
+            int(ident.fixed.sum()),
+            _names(np.flatnonzero(missing), ids),
+        )
     return result
 
 
@@ -381,18 +419,21 @@ def first_complete_epoch(range_m: np.ndarray, anchors) -> int | None:
     return last
 
 
-def filter_frame(range_m: np.ndarray, anchors, early: float = 0.05) -> tuple[int, int, int]:
+def filter_frame(range_m: np.ndarray, anchors, early: float = 0.05, min_refs: int = 3) -> tuple[int, int, int]:
     """The frame a grid filter (pgp, parametric) should run in, before its track is moved to `anchors`.
 
     The configuration's own frame when its three pairs (a0-a1, a0-a2, a1-a2) have all been measured
     within the first `early` share of the epochs: the paper's rule (a1 from its range to a0, eq. 5;
     a2 from a0 and a1, eq. 6) then holds. Otherwise (a frame pair never or only late measured) the
-    best-connected, best-conditioned triple of `choose_frame`, whose own pairs are measured; the caller
+    best-connected, best-conditioned triple of `choose_frame`, whose own pairs are measured and from which
+    the filter reaches the configuration's frame nodes and the most nodes (`trilateration_reach` with
+    `min_refs`: a triple through a node that ranges only the other two localises nothing else); the caller
     moves every epoch into the configuration's frame through the estimates of a0, a1, a2 there.
 
     Args:
         range_m: (K, N, N) ranges [m]. anchors: the configuration (a0, a1, a2).
         early: share of the epochs within which the frame pairs must have been measured.
+        min_refs: localised neighbours the filter needs to localise a node (`PGPParams.min_refs`).
 
     Returns:
         (b0, b1, b2) to run the filter in (`anchors` itself when the paper's rule applies).
@@ -402,7 +443,7 @@ def filter_frame(range_m: np.ndarray, anchors, early: float = 0.05) -> tuple[int
     first = first_complete_epoch(range_m, anchors)
     if first is not None and first <= max(early * k, 1):
         return anchors
-    best = choose_frame(range_m)
+    best = choose_frame(range_m, min_refs=min_refs, need=anchors)
     if best is None:
         return anchors
     tri, ident = best

@@ -86,7 +86,7 @@ def run_pgp(
     if dataset.n_epochs == 0:
         raise JaxcalError(f"{dataset.name}: no epochs to calibrate from")
     a = dataset.config(config)
-    b = a if params.frame == "direct" else _filter_anchors(dataset, a, params.frame)
+    b = a if params.frame == "direct" else _filter_anchors(dataset, a, params.frame, params.min_refs)
     validate_params(params)
     local = None
     if params.grid_mode != "global":
@@ -134,7 +134,7 @@ def uses_local(dataset: MeshDataset, params=None, config: str | None = None, mod
     if params.grid_mode == "global" or dataset.n_epochs == 0:
         return False
     a = dataset.config(config)
-    b = a if params.frame == "direct" else _filter_anchors(dataset, a, params.frame)
+    b = a if params.frame == "direct" else _filter_anchors(dataset, a, params.frame, params.min_refs)
     return local_setup(dataset, params, b, mode, False) is not None
 
 
@@ -305,14 +305,14 @@ def _run_local(dataset: MeshDataset, params: PGPParams, a, b, local, progress, p
     return res, info
 
 
-def _filter_anchors(dataset: MeshDataset, anchors, mode: str) -> tuple[int, int, int]:
+def _filter_anchors(dataset: MeshDataset, anchors, mode: str, min_refs: int = 3) -> tuple[int, int, int]:
     """The frame the filter runs in (`PGPParams.frame`: "auto" or "proxy")."""
     from jaxcal.mesh import identify
 
     if mode == "proxy":
-        best = identify.choose_frame(dataset.range)
+        best = identify.choose_frame(dataset.range, min_refs=min_refs, need=anchors)
         return anchors if best is None else best[0]
-    return identify.filter_frame(dataset.range, anchors)
+    return identify.filter_frame(dataset.range, anchors, min_refs=min_refs)
 
 
 def _to_config_frame(final, cov, track, anchors):
