@@ -30,6 +30,7 @@ __all__ = [
     "stratified_subsample",
     "hyper_penalty",
     "laplace_fit",
+    "laplace_covariance",
 ]
 
 
@@ -161,13 +162,19 @@ def laplace_fit(nlml, init, n, max_steps: int):
     )
     ok = jnp.isfinite(nlml(sol.value))
     th = jax.tree.map(lambda a, b: jnp.where(ok, a, b), sol.value, init)
+    return th, laplace_covariance(nlml, th), S.outcome(sol)
+
+
+def laplace_covariance(nlml, th):
+    """The anchor block (3, 3) of the inverse Hessian of `nlml` at `th` (a pytree whose first leaf is the
+    anchor): the Laplace / GLS covariance, every other parameter marginalised."""
     flat, unravel = jax.flatten_util.ravel_pytree(th)
     hess = jax.hessian(lambda v: nlml(unravel(v)))(flat)
     ev, vec = jnp.linalg.eigh(0.5 * (hess + hess.T))
     # A saddle or flat direction (not a minimum) gets a large, not a negative, variance.
     ev = jnp.maximum(jnp.abs(ev), 1e-10 * jnp.max(jnp.abs(ev)))
     cov = (vec / ev) @ vec.T
-    return th, cov[:3, :3], S.outcome(sol)
+    return cov[:3, :3]
 
 
 def neg_log_marginal_likelihood(
