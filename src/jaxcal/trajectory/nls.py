@@ -345,15 +345,21 @@ def calibrate(dataset, params=None, config=None) -> Result:
     return finish(dataset, "nls", p, groups, est, cov, info, report_fits("nls", codes, groups, p, hint))
 
 
-def solve_all_checked(groups, p: NLSParams):
-    """`_solve_all` on prepared `groups`, once more with 4x `max_steps` when a fit ran out of steps
-    (`jaxcal.solver.retry_unconverged`). Returns ((position, covariance, bias, codes), codes, steps used)."""
-
-    def fit(steps):
-        out = _solve_all(groups.position, groups.range, groups.mask, eqx.tree_at(lambda q: q.max_steps, p, steps))
-        return out, out[3]
-
-    return S.retry_unconverged(fit, p.max_steps)
+def solve_all_checked(groups, p: NLSParams, factor: int = 4):
+    """`_solve_all` on prepared `groups`, once more with `factor` x `max_steps` for the anchors whose fit ran out
+    of steps (`jaxcal.solver.retry_unconverged`, restricted to those anchors: every anchor's fit is independent,
+    and a batched fit costs every anchor's steps until the slowest stops, so retrying all of them made one
+    slow anchor cost the whole batch 4x). Returns ((position, covariance, bias, codes), codes, steps used)."""
+    out = _solve_all(groups.position, groups.range, groups.mask, p)
+    redo = np.flatnonzero(np.asarray(out[3]) == S.MAX_STEPS)
+    if redo.size == 0 or factor <= 1:
+        return out, out[3], p.max_steps
+    steps = p.max_steps * factor
+    sub = _solve_all(
+        groups.position[redo], groups.range[redo], groups.mask[redo], eqx.tree_at(lambda q: q.max_steps, p, steps)
+    )
+    out = tuple(jnp.asarray(full).at[redo].set(part) for full, part in zip(out, sub, strict=True))
+    return out, out[3], steps
 
 
 def prepare_offset(dataset, p: TrajectoryParams):
