@@ -73,7 +73,7 @@ def test_offset_variance_enters_the_covariance(rng):
 
 def test_retry_of_the_unconverged_anchors_alone_matches_retrying_all(rng):
     """`nls.solve_all_checked` retries only the anchors that ran out of steps; the slow reference retries the
-    whole batch (`solver.retry_unconverged`). An anchor with exact ranges converges at once, so the retry is a subset."""
+    whole batch (`solver.retry_unconverged`). An anchor with exact ranges converges at once: a subset is retried."""
     ds = lissajous(n_anchor=3, noise=0.05, outliers=40, seed=int(rng.integers(1 << 30)), bias=0.2)
     p = nls.NLSParams(estimate_offset=False, max_steps=2)
     groups, _ = in_float64(nls.prepare_poses)(ds, p)
