@@ -93,3 +93,16 @@ def test_retry_of_the_unconverged_anchors_alone_matches_retrying_all(rng):
     np.testing.assert_array_equal(codes, ref_codes)
     for a, b in zip(fast, ref, strict=True):  # a converged fit may move by 1e-11 m when given more steps
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-9, equal_nan=True)
+
+
+def test_thinned_start_fit_gives_the_offset_of_the_full_one(rng):
+    """`prepare_offset` seeds the joint fit with `nls` on a subsample (fast path); the reference seeds it with
+    `nls` on every range. The joint fit refits the anchors, so the offset is the same up to a small part of its sd."""
+    ds = lissajous(noise=0.05, shift_s=float(rng.uniform(-0.3, 0.3)), seed=int(rng.integers(1 << 30)), bias=0.2)
+    p = nls.NLSParams(estimate_offset=True)
+    _, fast = in_float64(nls.prepare_offset)(ds, p, 200)
+    _, ref = in_float64(nls.prepare_offset)(ds, p, 0)
+    sd = ref["time_offset_sd_s"]
+    assert abs(fast["time_offset_estimate_s"] - ref["time_offset_estimate_s"]) < 0.05 * sd, (fast, ref)
+    assert abs(fast["time_offset_sd_s"] - sd) < 0.05 * sd
+    np.testing.assert_allclose(fast["offset_sensitivity"], ref["offset_sensitivity"], rtol=0.05, atol=1e-3)
