@@ -2,8 +2,12 @@
 reported standard deviation, NaN and not applied where the range rate cannot fix it, and its variance in the
 anchors' covariance."""
 
+from types import SimpleNamespace
+
+import equinox as eqx
 import numpy as np
 
+from jaxcal import solver as S
 from jaxcal.data import TrajectoryDataset
 from jaxcal.precision import in_float64
 from jaxcal.trajectory import common, nls
@@ -65,3 +69,40 @@ def test_offset_variance_enters_the_covariance(rng):
     # finish adds exactly that term to the covariance nls computes at the offset applied
     off = nls.calibrate(ds, dict(plain, estimate_offset=False, time_offset_s=info["time_offset_s"])).covariance
     np.testing.assert_allclose(on, off + extra, rtol=1e-6, atol=1e-12)
+
+
+def test_retry_of_the_unconverged_anchors_alone_matches_retrying_all(rng):
+    """`nls.solve_all_checked` retries only the anchors that ran out of steps; the slow reference retries the
+    whole batch (`solver.retry_unconverged`). An anchor with exact ranges converges at once: a subset is retried."""
+    ds = lissajous(n_anchor=3, noise=0.05, outliers=40, seed=int(rng.integers(1 << 30)), bias=0.2)
+    p = nls.NLSParams(estimate_offset=False, max_steps=2)
+    groups, _ = in_float64(nls.prepare_poses)(ds, p)
+    pos, rr, mask = (np.concatenate([x, x[:1]]) for x in (groups.position, groups.range, groups.mask))
+    rr[-1] = np.linalg.norm(pos[-1] - np.array([1.0, 2.0, 2.5]), axis=-1)  # exact ranges: ls lands on it
+    groups = SimpleNamespace(position=pos, range=rr, mask=mask)
+
+    def full(steps):
+        out = nls._solve_all(pos, rr, mask, eqx.tree_at(lambda q: q.max_steps, p, steps))
+        return out, out[3]
+
+    first = np.asarray(in_float64(full)(2)[1])
+    assert first[-1] == S.CONVERGED and (first == S.MAX_STEPS).any(), first  # a strict subset is retried
+    (fast, codes, steps) = in_float64(nls.solve_all_checked)(groups, p)
+    (ref, ref_codes, ref_steps) = in_float64(S.retry_unconverged)(full, 2)
+    assert steps == ref_steps == 8
+    np.testing.assert_array_equal(codes, ref_codes)
+    for a, b in zip(fast, ref, strict=True):  # a converged fit may move by 1e-11 m when given more steps
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-9, equal_nan=True)
+
+
+def test_thinned_start_fit_gives_the_offset_of_the_full_one(rng):
+    """`prepare_offset` seeds the joint fit with `nls` on a subsample (fast path); the reference seeds it with
+    `nls` on every range. The joint fit refits the anchors, so the offset is the same up to a small part of its sd."""
+    ds = lissajous(noise=0.05, shift_s=float(rng.uniform(-0.3, 0.3)), seed=int(rng.integers(1 << 30)), bias=0.2)
+    p = nls.NLSParams(estimate_offset=True)
+    _, fast = in_float64(nls.prepare_offset)(ds, p, 200)
+    _, ref = in_float64(nls.prepare_offset)(ds, p, 0)
+    sd = ref["time_offset_sd_s"]
+    assert abs(fast["time_offset_estimate_s"] - ref["time_offset_estimate_s"]) < 0.05 * sd, (fast, ref)
+    assert abs(fast["time_offset_sd_s"] - sd) < 0.05 * sd
+    np.testing.assert_allclose(fast["offset_sensitivity"], ref["offset_sensitivity"], rtol=0.05, atol=1e-3)
