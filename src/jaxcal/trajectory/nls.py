@@ -43,6 +43,7 @@ __all__ = [
     "irls_covariance",
     "robust_covariance",
     "cell_labels",
+    "route_cells",
     "cell_covariances",
     "calibrate",
 ]
@@ -82,7 +83,8 @@ class NLSParams(TrajectoryParams):
     max_steps: int = 100
     n_clusters: int = 16
     cov_clusters: int = 4
-    cov_cell_m: float = 12.0
+    cov_cells: float = 2.0
+    cov_cell_m: float = 0.0
 
 
 def _dist(pos, a):
@@ -166,17 +168,21 @@ def covariances_at(pos, rng, mask, x, p: NLSParams, n_clusters: tuple[int, ...])
     return jax.vmap(lambda ps, r, m, xa: covariance_at(ps, r, m, xa, p, n_clusters))(pos, rng, mask, x)
 
 
-def cell_labels(position: np.ndarray, mask: np.ndarray, cell_m: float) -> tuple[np.ndarray, int]:
+def cell_labels(position: np.ndarray, mask: np.ndarray, cell_m, origin=None) -> tuple[np.ndarray, int]:
     """Route cells of the tag positions: the square (x, y) cell of side `cell_m` [m] of each valid entry,
     numbered 0, 1, ... per anchor in order of first visit.
 
     Args:
         position: (A, n, 3) tag positions [m]; mask: (A, n) valid entries.
+        cell_m: the side [m], one for all anchors or (A,) one each. origin: (A, 2) a corner of each anchor's
+            grid [m] (None: the frame's origin).
 
     Returns:
         ((A, n) int labels, padding = the returned count), the largest number of cells of an anchor.
     """
-    cells = np.floor(np.asarray(position)[..., :2] / cell_m).astype(np.int64)
+    side = np.broadcast_to(np.asarray(cell_m, dtype=float), mask.shape[:1])
+    corner = np.zeros((mask.shape[0], 2)) if origin is None else np.asarray(origin, dtype=float)
+    cells = np.floor((np.asarray(position)[..., :2] - corner[:, None, :]) / side[:, None, None]).astype(np.int64)
     mask = np.asarray(mask)
     labels = np.zeros(mask.shape, np.int64)
     counts = []
@@ -188,6 +194,29 @@ def cell_labels(position: np.ndarray, mask: np.ndarray, cell_m: float) -> tuple[
     n_cells = max(max(counts, default=1), 1)
     labels[~mask] = n_cells
     return labels, n_cells
+
+
+def route_cells(groups, p) -> tuple[np.ndarray, int]:
+    """`cell_labels` of prepared `groups` with nls's cells: `p.cov_cell_m` [m] where > 0, else the box of each
+    anchor's tag positions (x, y) cut into `p.cov_cells` cells along its longer side (square cells from the
+    box's corner, the last row and column clipped to the box). Parameters without them (those of `ls` and
+    `gp`) get nls's defaults. Off (both 0): one cell, (A, n) zeros and padding 1."""
+    side_m = float(getattr(p, "cov_cell_m", NLSParams.cov_cell_m))
+    per_side = float(getattr(p, "cov_cells", NLSParams.cov_cells))
+    pos, mask = np.asarray(groups.position), np.asarray(groups.mask)
+    if side_m > 0:
+        return cell_labels(pos, mask, side_m)
+    if per_side <= 0:
+        return np.where(mask, 0, 1).astype(np.int64), 1
+    xy = np.where(mask[..., None], pos[..., :2], np.nan)
+    with np.errstate(all="ignore"):
+        lo, hi = np.nanmin(xy, axis=1), np.nanmax(xy, axis=1)
+    lo, hi = np.nan_to_num(lo), np.nan_to_num(hi)
+    side = np.maximum(np.max(hi - lo, axis=1) / per_side, 1e-9)
+    # the far edge of the box belongs to the last cell (not a cell of its own)
+    inside = np.where(mask[..., None], pos[..., :2], lo[:, None, :])
+    clipped = np.minimum(inside, lo[:, None, :] + (np.ceil(per_side) - 0.5) * side[:, None, None])
+    return cell_labels(np.concatenate([clipped, pos[..., 2:]], axis=-1), mask, side, lo)
 
 
 @eqx.filter_jit
@@ -222,9 +251,9 @@ def cell_covariances(groups, est, bias, cov, p: NLSParams) -> np.ndarray:
     2.6; cells of 4 m changed little (errors in the simulated NLOS zones persist over more than a cell),
     24 m was worse at the worst (5.2)."""
     cov = np.array(cov, dtype=float)
-    if p.cov_cell_m <= 0:
+    labels, n_cells = route_cells(groups, p)
+    if n_cells <= 1:
         return cov
-    labels, n_cells = cell_labels(groups.position, groups.mask, p.cov_cell_m)
     x = np.concatenate([np.nan_to_num(np.asarray(est, float)), np.nan_to_num(np.asarray(bias, float))[:, None]], 1)
     jack = np.asarray(_cell_jackknife(groups.position, groups.range, groups.mask, jnp.asarray(x), labels, p, n_cells))
     ok = np.isfinite(est).all(axis=1) & np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(jack).all(axis=(1, 2))
@@ -326,7 +355,13 @@ def calibrate(dataset, params=None, config=None) -> Result:
     if p.loss not in ("cauchy", "huber", "l2"):
         raise JaxcalError(f"parameter loss: expected cauchy, huber or l2, got {p.loss!r}")
     if not p.cov_cell_m >= 0:
-        raise JaxcalError(f"parameter cov_cell_m: must be a number >= 0 [m] (0 = off), got {p.cov_cell_m}")
+        raise JaxcalError(
+            f"parameter cov_cell_m: must be a number >= 0 [m] (0 = cells from cov_cells), got {p.cov_cell_m}"
+        )
+    if not 0 <= p.cov_cells < np.inf:
+        raise JaxcalError(
+            f"parameter cov_cells: must be a number >= 0 (cells along the route's box; 0 = off), got {p.cov_cells}"
+        )
     groups, info = prepare_poses(dataset, p)
 
     (est, cov, bias, codes), codes, steps = solve_all_checked(groups, p)
