@@ -14,7 +14,7 @@ Range errors along a path are not independent (an NLOS state that persists while
 building, pose errors that drift): counted as independent, thousands of ranges shrink the covariance to
 millimetres for errors of decimetres; and an error that persists along a stretch pulls the fit towards
 itself, so the residuals show only part of it (the leave-one-out fit does not see it at all).
-`calibrate` then widens it to a third jackknife over route cells (`cov_cells`, `cell_covariances`): the
+`calibrate` then widens it to a third jackknife over route cells (`cov_cell_m`, `cell_covariances`): the
 ranges taken in one place on every pass are one cluster, so an error tied to a place (an NLOS zone driven
 through on every lap) is not counted once per lap. The 3 x 3 position block is reported.
 """
@@ -67,13 +67,15 @@ class NLSParams(TrajectoryParams):
             200-223, 1-3 passes per anchor, horizontal NEES/dof before the mirror check) 16 stretches
             alone gave a median of 7.8 / 19.6 (no drift / drift), 4 alone 3.9 / 2.0, both 2.8 / 1.9;
             4 alone is noisy where the path has many passes (hanyang LOS: 15.6 where 16 gave 1.45).
-        cov_cells: route cells of a third jackknife (`cell_covariances`): the ranges taken in one cell, on
-            every pass, are one cluster, so an error tied to a place (an NLOS zone the route drives through
-            on every lap) counts once. The box of each anchor's tag positions is cut into square cells,
-            `cov_cells` along its longer side (scale-free: the same partition in any unit or frame; 0 = off).
-            Chosen on the development campaigns (even seeds 0-32, no drift; 2 or 3 per side, against fixed
-            12 m cells): 3 (on `small` about 8 m cells; hanyang 18 m, hymn 12 m, cuhksz 1.7 m).
-        cov_cell_m: > 0: a fixed cell side [m] instead (cells on the frame's grid; 12 m before `cov_cells`).
+        cov_cell_m: side [m] of the square route cells of a third jackknife (`cell_covariances`): the ranges
+            taken in one cell, on every pass, are one cluster, so an error tied to a place (an NLOS zone the
+            route drives through on every lap) counts once. Chosen on the development campaigns (even seeds
+            0-38, no drift; cells of 1-24 m): 12 m. 0 = the scale-free cells of `cov_cells` instead.
+        cov_cells: where `cov_cell_m` is 0, the box of each anchor's tag positions is cut into square cells,
+            `cov_cells` along its longer side (the same partition in any unit or frame; 0 = no cells).
+            Not the default: 3 per side (chosen against 2 on the development campaigns, even seeds 0-32;
+            about 8 m cells on `small`) made hanyang's covariances 2-10 times too wide (18 m cells, NEES/dof
+            0.17 and 0.11; see docs/benchmarks/uncertainty.md, eighth round).
         min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s: as for `ls`, and so are
             max_gap_s, time_offset_s, estimate_offset, max_offset_s.
     """
@@ -86,8 +88,8 @@ class NLSParams(TrajectoryParams):
     max_steps: int = 100
     n_clusters: int = 16
     cov_clusters: int = 4
+    cov_cell_m: float = 12.0
     cov_cells: float = 3.0
-    cov_cell_m: float = 0.0
 
 
 def _dist(pos, a):
@@ -363,7 +365,7 @@ def calibrate(dataset, params=None, config=None) -> Result:
         )
     if not 0 <= p.cov_cells < np.inf:
         raise JaxcalError(
-            f"parameter cov_cells: must be a number >= 0 (cells along the route's box; 0 = off), got {p.cov_cells}"
+            f"parameter cov_cells: must be a number >= 0 (cells along the route's box; 0 = none), got {p.cov_cells}"
         )
     groups, info = prepare_poses(dataset, p)
 
