@@ -1,15 +1,18 @@
 """Issue #19: ls, nls, gp (and a SciPy robust NLS) on real recordings and simulated families.
 
     python benchmarks/gp_families.py [FILE.h5 ...] [--seeds N] [--scenario campus|small ...]
-        [--drift 0 0.05] [--gp KEY=VALUE ...] [--methods ls nls gp scipy] > LOG
+        [--drift 0 0.05] [--offset 0 rand] [--nls KEY=VALUE ...] [--gp KEY=VALUE ...]
+        [--methods ls nls gp scipy] > LOG
     python benchmarks/gp_families.py --table LOG ...      # the markdown table of the docs
 
 Per dataset and method, one JSON line: mean 3-D anchor error over the anchors with an estimate
 (a NaN height counts as horizontal error only), NEES/dof (e^T C^-1 e / dof over the estimated
 axes, median over anchors), number of NaN-height anchors, seconds (one cold call: JIT compilation
-included) and the 1-minute load average. Simulated families: seeds 0..N-1 of each scenario and
-drift (the campus has building blocks: links crossing one are NLOS, a bias that persists along
-stretches of the route; drift is a horizontal random walk of the reported poses).
+included) and the 1-minute load average; the clock offset estimated and its sd where a method
+estimated one. Simulated families: seeds 0..N-1 of each scenario, drift and pose clock offset
+(`--offset rand`: uniform in +-0.3 s, drawn per seed; the campus has building blocks: links crossing
+one are NLOS, a bias that persists along stretches of the route; drift is a horizontal random walk
+of the reported poses).
 
 `scipy`: what a user would write without jaxcal: per anchor `scipy.optimize.least_squares`
 (`loss="soft_l1"`, `f_scale=0.3` m) on r_i = |p_i - a| + b over all ranges, started at the `ls`
@@ -55,7 +58,7 @@ def scipy_nls(ds):
     return out
 
 
-def evaluate(ds, method, params, label):
+def evaluate(ds, method, params, label, true_offset=None):
     t0 = time.perf_counter()
     if method == "scipy":
         est, cov = scipy_nls(ds), None
@@ -77,6 +80,9 @@ def evaluate(ds, method, params, label):
         nees = float(np.median(v))
     out = {
         "dataset": label,
+        "true_offset_s": true_offset,
+        "offset_s": None if method == "scipy" else res.params.get("info_time_offset_estimate_s"),
+        "offset_sd_s": None if method == "scipy" else res.params.get("info_time_offset_sd_s"),
         "method": method if not params else f"{method} {params}",
         "mean_error_m": float(err[hor].mean()) if hor.any() else None,
         "max_error_m": float(err[hor].max()) if hor.any() else None,
@@ -146,12 +152,21 @@ def main():
     ap.add_argument("--scenario", nargs="*", default=["campus"])
     ap.add_argument("--drift", nargs="*", type=float, default=[0.0, 0.05])
     ap.add_argument("--methods", nargs="*", default=["ls", "nls", "gp", "scipy"])
+    ap.add_argument(
+        "--offset",
+        nargs="*",
+        default=["0"],
+        help="pose clock offsets of the simulated families [s]: numbers, or 'rand' (uniform in +-0.3 s per seed)",
+    )
+    ap.add_argument("--nls", nargs="*", help="extra nls configs, each KEY=VALUE[,KEY=VALUE]")
     ap.add_argument("--gp", nargs="*", help="extra gp configs, each KEY=VALUE[,KEY=VALUE]")
     a = ap.parse_args()
     if a.table:
         table(a.table)
         return
     configs = [(m, {}) for m in a.methods]
+    for g in a.nls or []:
+        configs.append(("nls", parse_set(g.split(","))))
     for g in a.gp or []:
         configs.append(("gp", parse_set(g.split(","))))
     for f in a.files:
@@ -164,9 +179,16 @@ def main():
         for sc in a.scenario:
             for drift in a.drift:
                 for seed in range(a.first_seed, a.first_seed + a.seeds * a.seed_step, a.seed_step):
-                    ds = simulate(sc, seed=seed, drift=drift)
-                    for m, p in configs:
-                        evaluate(ds, m, p, f"{sc} drift={drift:g} seed={seed}")
+                    for off in a.offset:
+                        t = (
+                            float(np.random.default_rng(1000 + seed).uniform(-0.3, 0.3))
+                            if off == "rand"
+                            else float(off)
+                        )
+                        ds = simulate(sc, seed=seed, drift=drift, time_offset_s=t)
+                        name = f"{sc} drift={drift:g}" + (f" offset={off}" if off != "0" else "") + f" seed={seed}"
+                        for m, p in configs:
+                            evaluate(ds, m, p, name, t)
 
 
 if __name__ == "__main__":

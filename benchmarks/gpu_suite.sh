@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
-# The GPU figures in one short run (issues #16 and #26), as made on a lent H100/H200 machine whose image has
+# The GPU figures in one short run (issues #16, #26 and #19), as made on a lent H100/H200 machine whose image has
 # CUDA JAX but none of jaxcal's pure-Python dependencies at the tested versions: those come as wheels in .whl/
-# (pip download --no-deps equinox optimistix lineax jaxtyping wadler-lindig pyserial at constraints.txt's
-# versions). Each part is bounded by `timeout`, so one part that runs long cannot cost the others;
-# outputs go to $OUT (default ./gpu-out).
+# (pip download --no-deps equinox optimistix lineax jaxtyping wadler-lindig pyserial blackjax optax absl-py tqdm
+# threadpoolctl at constraints.txt's versions). Each part is bounded by `timeout`, so one part that runs long cannot cost the others;
+# outputs go to $OUT (default ./gpu-out). A part whose bound is 0 is skipped (e.g. T_SWEEP=0).
 #   bash benchmarks/gpu_suite.sh
 set -uo pipefail
 OUT="${OUT:-gpu-out}"; mkdir -p "$OUT"
@@ -14,14 +14,22 @@ else
   export PYTHONPATH="$PWD/src"
 fi
 PY="${PY:-python3}"
+part() {  # part BOUND_S LOG CMD...: run CMD under `timeout BOUND_S`, its output teed to $OUT/LOG; skipped if BOUND_S is 0
+  local bound="$1" log="$2"; shift 2
+  if [ "$bound" = 0 ]; then echo "gpu_suite: skipped $log"; return; fi
+  timeout "$bound" "$@" | tee "$OUT/$log"
+}
 export JAX_PLATFORMS="${JAX_PLATFORMS:-cuda}" PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/device.txt"
-"$PY" -c "import jax, equinox, optimistix; print('jax', jax.__version__, jax.devices(), 'eqx', equinox.__version__, 'optx', optimistix.__version__)" | tee -a "$OUT/device.txt"
+"$PY" -c "import jax, equinox, optimistix, blackjax; print('jax', jax.__version__, jax.devices(), 'eqx', equinox.__version__, 'optx', optimistix.__version__, 'blackjax', blackjax.__version__)" | tee -a "$OUT/device.txt"
 # 1. sweep throughput against batch size (torgau, 2,000 epochs, 0.5 and 0.25 m cells)
-timeout "${T_SWEEP:-150}" "$PY" benchmarks/sweep_batching.py ${SWEEP_ARGS:-} | tee "$OUT/sweep_batching.jsonl"
+part "${T_SWEEP:-150}" sweep_batching.jsonl "$PY" benchmarks/sweep_batching.py ${SWEEP_ARGS:-}
 # 2. the N-curve (whole calibrate processes), pgp then batch
-timeout "${T_PGP:-150}" "$PY" benchmarks/large_networks.py --nodes "${PGP_NODES:-40,100,300}" --methods pgp \
-  --timeout "${RUN_TIMEOUT:-70}" --out "$OUT/large-pgp" | tee "$OUT/large_pgp.jsonl"
-timeout "${T_BATCH:-120}" "$PY" benchmarks/large_networks.py --nodes "${BATCH_NODES:-40,100}" --methods batch \
-  --timeout "${RUN_TIMEOUT_BATCH:-100}" --out "$OUT/large-batch" | tee "$OUT/large_batch.jsonl"
+part "${T_PGP:-150}" large_pgp.jsonl "$PY" benchmarks/large_networks.py --nodes "${PGP_NODES:-40,100,300}" \
+  --methods pgp --timeout "${RUN_TIMEOUT:-70}" --out "$OUT/large-pgp"
+part "${T_BATCH:-120}" large_batch.jsonl "$PY" benchmarks/large_networks.py --nodes "${BATCH_NODES:-40,100}" \
+  --methods batch --timeout "${RUN_TIMEOUT_BATCH:-100}" --out "$OUT/large-batch"
+# 3. trajectory GP against nls, 10 anchors from ~1e5 ranges (issue #19 item 3), default gp then model=space
+part "${T_GP:-0}" gp_speed.jsonl "$PY" benchmarks/gp_speed.py --rate 150 --n 300
+part "${T_GP_SPACE:-0}" gp_speed_space.jsonl "$PY" benchmarks/gp_speed.py --rate 150 --n 300 --model space
 echo "gpu_suite: done"

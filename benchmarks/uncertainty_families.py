@@ -16,14 +16,18 @@ per method: coverage at 95 % over well-connected nodes, NEES per dof (median and
 nodes are all well connected, and over all networks), the count of confidently wrong nodes (a finite
 estimate and covariance with the truth outside its 95 % ellipse) among the weak nodes.
 
-Method `pgp-grid`: pgp's estimate with the grid posterior's own covariance (moments + cell^2 / 12, what
-`--method pgp` reported before its pair-level widening).
+Methods `pgp-grid`, `parametric-grid`: the filter's estimate with the grid posterior's own covariance (moments +
+cell^2 / 12, what `--method pgp` reported before its pair-level widening and `--method parametric` before the
+eighth round). `--save DIR` pickles every result (offline rechecks of a covariance formula at the same estimates).
 
 Usage:
     python benchmarks/uncertainty_families.py [--seeds 0-23] [--methods batch,pgp,pgp+batch,batch:loss=mixture]
         [--family nlos|los|walls4]
 
-`--family los`: the same without walls (every pair LOS); `walls4`: 14 nodes and two more walls.
+`--family los`: the same without walls (every pair LOS); `walls4`: 14 nodes and two more walls; `weak`: the
+`nlos` family made awkward (issue #24): n9 ranges only its two nearest nodes, n8 only its nearest, and the
+frame nodes n1 and n2 never range each other (weak nodes must be NaN rows, or hold the truth); `weaknodes`: the
+same weak nodes, the frame pairs as measured.
 """
 
 from __future__ import annotations
@@ -42,11 +46,22 @@ FAMILIES = {
     "nlos": dict(walls=WALLS, n=10),
     "los": dict(walls=(), n=10),
     "walls4": dict(walls=WALLS + (((0.0, 10.0), (8.0, 10.0)), ((22.0, 10.0), (30.0, 10.0))), n=14),
+    # awkward (issue #24): n9 ranges only its two nearest nodes, n8 only its nearest, a1 and a2 never range
+    # each other
+    "weak": dict(walls=WALLS, n=10, weak=True),
+    # the same weak nodes, the frame pairs as measured
+    "weaknodes": dict(walls=WALLS, n=10, weak="nodes"),
 }
 
 
 def network(
-    seed: int, n: int = 10, n_epochs: int = 400, pair_offset_m: float = 0.04, lost_nlos: float = 0.5, walls=WALLS
+    seed: int,
+    n: int = 10,
+    n_epochs: int = 400,
+    pair_offset_m: float = 0.04,
+    lost_nlos: float = 0.5,
+    walls=WALLS,
+    weak: bool | str = False,
 ):
     """One family member: a `MeshDataset` (frame (0, 1, 2) in its configs) with per-pair offsets."""
     from jaxcal.data import MeshDataset
@@ -63,6 +78,14 @@ def network(
     iu, ju = np.triu_indices(n, 1)
     nlos = ~los[iu, ju]
     lost = nlos & (rng.random(iu.size) < lost_nlos)
+    if weak:  # node n-1 keeps its two nearest neighbours, n-2 its nearest; the pair (1, 2) is never measured
+        keep = {(n - 1, int(k)) for k in np.argsort(d[n - 1])[1:3]} | {(n - 2, int(np.argsort(d[n - 2])[1]))}
+        for q, (a, b) in enumerate(zip(iu, ju, strict=True)):
+            frame_pair = (a, b) == (1, 2) and weak is True
+            if frame_pair or (b in (n - 2, n - 1) and (b, a) not in keep) or (a == n - 2 and (a, b) not in keep):
+                lost[q] = True
+            elif (b, a) in keep or (a, b) in keep:
+                lost[q] = False
     sc = MeshScenario(
         name=f"family-{seed}",
         hall=(30.0, 20.0),
@@ -151,11 +174,12 @@ def run(method: str, ds):
 
     name, _, sets = method.partition(":")
     params = dict(kv.split("=", 1) for kv in sets.split(",") if kv)
-    if name == "pgp-grid":  # pgp's estimate with the grid posterior's own covariance (before issue #24)
+    if name in ("pgp-grid", "parametric-grid"):  # the estimate with the grid posterior's own covariance
         from jaxcal.mesh.identify import mask_result
         from jaxcal.mesh.pgp import run_pgp
 
-        return mask_result(run_pgp(ds, params, "f012", mode="pgp")[0], ds.range, warn=False)
+        mode = name.removesuffix("-grid")
+        return mask_result(run_pgp(ds, params, "f012", mode=mode, posterior=False)[0], ds.range, warn=False)
     return calibrate(ds, name, params, "f012")
 
 
@@ -200,6 +224,7 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", default="batch,pgp,pgp+batch,batch:loss=mixture")
     ap.add_argument("--pair-offset", type=float, default=0.04)
     ap.add_argument("--family", default="nlos", choices=sorted(FAMILIES))
+    ap.add_argument("--save", default=None, help="folder: pickle each (seed, method) result there (offline rechecks)")
     args = ap.parse_args(argv)
     import logging
 
@@ -212,6 +237,13 @@ def main(argv=None) -> int:
         for m in methods:
             t0 = time.perf_counter()
             res = run(m, ds)
+            if args.save:
+                import os
+                import pickle
+
+                os.makedirs(args.save, exist_ok=True)
+                with open(os.path.join(args.save, f"{args.family}-{seed}-{m.replace(':', '_')}.pkl"), "wb") as f:
+                    pickle.dump(res, f)
             nodes = node_figures(res, ds)
             for r in nodes:
                 r["well"] = bool(well[r["node"]])

@@ -94,7 +94,7 @@ def main(argv=None) -> int:
                     params = dict(kv.split("=", 1) for kv in sets.split(",") if kv)
                     if meth.startswith("batch") and dim == 3:
                         params["dim"] = "3"
-                    if meth == "pgp" and dim == 3:
+                    if meth in ("pgp", "parametric") and dim == 3:
                         continue  # the grid filter is planar
                     t0 = time.perf_counter()
                     try:

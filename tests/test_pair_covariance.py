@@ -5,6 +5,7 @@ as its distance from it."""
 from __future__ import annotations
 
 import numpy as np
+from scipy.stats import chi2
 
 from conftest import random_layout
 from jaxcal.mesh.pair_covariance import polish, position_covariance
@@ -51,3 +52,55 @@ def test_an_estimate_off_the_fit_carries_its_displacement(rng):
     free = np.flatnonzero(np.r_[[False, False, True, False], np.ones(2 * len(pos) - 4, bool)])
     fit = polish(est, i, j, z, free, 0.3)
     assert np.abs(fit - pos).max() < 0.1  # the fit returns to the pairs' positions
+
+
+def test_an_estimate_in_a_wrong_basin_is_measured_against_the_ranges_fit(rng):
+    """A filter that diverged (nodes swapped, metres off): polishing from its estimate stays in the wrong
+    basin; `robust_fit` also starts from the pairs' MDS layout and keeps the lower cost, so every node's
+    displacement from the fit, and the truth, is in its covariance."""
+    from jaxcal.mesh.pair_covariance import robust_fit
+
+    pos, r = network(rng, outlier_m=0.0)
+    est = pos.copy()
+    est[3:] = pos[np.r_[4 : len(pos), 3]]  # nodes 3.. each at the next one's place
+    i, j = np.triu_indices(len(pos), 1)
+    z = np.median(r[:, i, j], axis=0)
+    free = np.flatnonzero(np.r_[[False, False, True, False], np.ones(2 * len(pos) - 4, bool)])
+    assert np.abs(polish(est, i, j, z, free, 0.3) - pos).max() > 1.0  # polish alone: the wrong basin
+    assert np.abs(robust_fit(est, i, j, z, free, 0.3, (0, 1, 2)) - pos).max() < 0.1
+    cov = position_covariance(r, est, (0, 1, 2), robust_scale=0.3)
+    e = est[3:] - pos[3:]
+    assert np.all(np.trace(cov[3:], axis1=1, axis2=2) >= 0.9 * np.sum(e * e, axis=1))  # metres off, metres wide
+    nees = [ek @ np.linalg.solve(ck, ek) for ek, ck in zip(e, cov[3:], strict=True)]
+    assert np.median(nees) <= 5.991  # most truths inside their 95 % ellipse (the fit's own error is ~5 % outside)
+
+
+def test_network_displacement_is_a_shared_variance_and_a_gross_node_keeps_its_own(rng):
+    """`displacement="network"` (what pgp and parametric report): the mean square of the free coordinates'
+    displacements on every free coordinate, written out here; a node metres off (beyond the 99.9 % chi-square
+    quantile under the MAD scale) is left out of it and keeps its own d d^T. Displacements drawn from one
+    Gaussian then land inside their 95 % ellipses about 95 % of the time (not 100 %, as with d d^T per node)."""
+    from jaxcal.mesh.pair_covariance import _displacement_term
+
+    n = 400
+    dev = rng.normal(0.0, 0.2, (n, 2))
+    mask = np.ones((n, 2), bool)
+    mask[0] = False
+    mask[1, 1] = False
+    dev[~mask] = 0.0
+    dev[7] = (3.0, -2.0)
+    term = _displacement_term(dev, mask, "network")
+    scale2 = (1.4826 * np.median(np.abs(dev[mask]))) ** 2
+    gross = np.sum(dev**2, axis=1) / scale2 > chi2.ppf(0.999, mask.sum(axis=1).clip(1))
+    gross[0] = False
+    assert gross[7] and gross.sum() <= 4  # the node metres off; a Gaussian draw beyond 99.9 % is rare
+    inl = mask & ~gross[:, None]
+    var = np.mean(dev[inl] ** 2)
+    for k in np.flatnonzero(~gross)[1:]:
+        np.testing.assert_allclose(term[k], np.diag(np.where(mask[k], var, 0.0)), rtol=1e-12)
+    np.testing.assert_array_equal(term[0], np.zeros((2, 2)))
+    g = term[7]
+    assert np.linalg.eigvalsh(g - np.outer(dev[7], dev[7])).min() >= -1e-12
+    assert np.linalg.eigvalsh(g - var * np.eye(2)).min() >= -1e-12
+    nees = np.array([dev[k] @ np.linalg.solve(term[k], dev[k]) for k in range(2, n)])
+    assert 0.9 <= np.mean(nees <= 5.991) <= 0.99

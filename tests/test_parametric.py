@@ -56,3 +56,23 @@ def test_noise_free_placement_and_cli(tmp_path):
     assert proc.returncode == 0, proc.stderr
     r = hdf5.read(out)
     assert r.method == "parametric" and r.covariance.shape == (4, 2, 2) and np.isfinite(r.position).all()
+
+
+def test_covariance_is_the_pair_level_covariance_at_the_filter_estimate(rng):
+    """`--method parametric` reports pgp's kind of covariance (`pgp.with_pair_covariance`): the pair-level
+    covariance at its estimate, with the estimate's displacement from a robust fit of the pairs as an error the
+    network shares (`position_covariance(..., displacement="network")` with the filter's sigma_r); the positions
+    are the filter's, unchanged."""
+    from jaxcal.mesh.pair_covariance import position_covariance
+
+    ds = make_mesh(n=6, k=30, noise=0.1, seed=int(rng.integers(1 << 20)), span=8.0)
+    p = {"cell_m": 0.5, "sigma_r": 0.3, "sigma_v": 0.3, "margin_m": 1.0}
+    res = parametric.calibrate(ds, p)
+    raw = run_pgp(ds, PGPParams(**p), mode="parametric", posterior=False)[0]
+    pair = position_covariance(ds.range, raw.position, raw.frame_anchors(), robust_scale=0.3, displacement="network")
+    np.testing.assert_array_equal(res.position, raw.position)
+    fixed = np.isfinite(res.covariance).all(axis=(1, 2))
+    assert fixed.sum() >= 4
+    np.testing.assert_allclose(res.covariance[fixed], pair[fixed], rtol=1e-9, atol=1e-12)
+    for c in res.covariance[fixed]:
+        assert np.allclose(c, c.T) and np.linalg.eigvalsh(c).min() >= -1e-12

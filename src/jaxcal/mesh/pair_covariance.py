@@ -260,6 +260,7 @@ def position_covariance(
     anchors: tuple[int, int, int],
     offset: bool = False,
     robust_scale: float | None = None,
+    displacement: str = "node",
 ) -> np.ndarray:
     """(N, D, D) covariance of a mesh estimate `position` (frame `anchors`) under per-pair systematic
     errors. Without a fitted range offset (`offset=False`) a common offset of all ranges is one more
@@ -269,11 +270,13 @@ def position_covariance(
 
     With `robust_scale` None: the covariance of an estimator that weighs every measured pair alike
     (least-squares influence), at `position` itself. With a scale s [m] (e.g. a grid filter's sigma_r,
-    whose estimate is not a least-squares fit): the pairs' medians are first fitted from `position` by
-    Cauchy-robust least squares of scale s over the free coordinates (`polish`), the covariance is that
+    whose estimate is not a least-squares fit): the pairs' medians are first fitted by Cauchy-robust least
+    squares of scale s over the free coordinates (`robust_fit`: from `position` and from the pairs' MDS
+    layout, whichever ends lower), the covariance is that
     of this fit (pairs weighted by their Cauchy weights 1 / (1 + (e / s)^2) at it, so a pair metres off
     neither moves it nor sizes the others' errors), and each node's displacement d from the fit to
-    `position` is added as d d^T (the estimate's error is the fit's plus d)."""
+    `position` is added (`displacement`: "node", d d^T; "network", its variance shared by the network's nodes,
+    gross nodes with their own d d^T as well: `_displacement_term`)."""
     x = np.asarray(position, dtype=np.float64)
     n, d = x.shape
     a0, a1, a2 = anchors
@@ -296,7 +299,7 @@ def position_covariance(
     free = np.flatnonzero(mask.ravel())
     x_fit, w = x, np.ones(i.size)
     if robust_scale is not None:
-        x_fit = polish(x, i, j, zmed, free, float(robust_scale))
+        x_fit = robust_fit(x, i, j, zmed, free, float(robust_scale), anchors)
     diff = x_fit[i] - x_fit[j]
     dist = np.linalg.norm(diff, axis=1)
     u = diff / np.maximum(dist, 1e-12)[:, None]
@@ -315,14 +318,100 @@ def position_covariance(
         shared = spread[:, None]
     else:
         shared = np.column_stack([spread, np.ones(i.size)])
+    if i.size - jac.shape[1] < 3 + shared.shape[1]:
+        # fewer redundant pairs than variance components: the residuals cannot size the pairs' errors (with
+        # only the frame nodes placed, 3 pairs for 3 coordinates, the shared amplitudes came out at 10^4-10^5 m
+        # in one direction and nothing in the other)
+        return out
     cov, _ = pair_covariance(jac, e, w, spread, i, j, n, np.zeros(jac.shape[1]), shared)
     cov_all = np.zeros((n * d, n * d))
     cov_all[np.ix_(free, free)] = cov[: free.size, : free.size]
     for node in np.flatnonzero(placed):
         out[node] = cov_all[node * d : (node + 1) * d, node * d : (node + 1) * d]
-        dev = x[node] - x_fit[node]
-        out[node] = out[node] + np.outer(dev, dev)
+    dev = np.where(mask, x - x_fit, 0.0)
+    out = out + _displacement_term(dev, mask, displacement)
     return 0.5 * (out + np.swapaxes(out, 1, 2))
+
+
+def _displacement_term(dev: np.ndarray, mask: np.ndarray, how: str) -> np.ndarray:
+    """(N, D, D) the covariance term of the estimate's displacement `dev` (N, D) from the robust fit (zero on the
+    coordinates the frame fixes, `mask` False).
+
+    `node`: each node's own d d^T. `network`: the displacement is an error of the estimator (a grid's cells, a
+    filter's lag) whose size the network's nodes share: sigma^2 = the mean square of the free coordinates'
+    displacements, on every free coordinate, except for *gross* nodes, whose displacement lies beyond the
+    99.9 % quantile of chi-square under the robust scale (1.4826 MAD of the coordinates): they keep their own
+    d d^T as well and are left out of sigma^2. (`node` alone puts each node's realised error into its own
+    ellipse: the truth is then inside by construction, coverage 100 %, NEES/dof 0.5-0.7 on the families.)"""
+    node = dev[:, :, None] * dev[:, None, :]
+    if how == "node":
+        return node
+    if how != "network":
+        raise ValueError(f"unknown displacement term {how!r}")
+    from scipy.stats import chi2  # noqa: PLC0415
+
+    from jaxcal.mesh.batch import covariance_union  # noqa: PLC0415
+
+    dof = mask.sum(axis=1)
+    ok = np.isfinite(dev).all(axis=1) & (dof > 0)
+    d_free = np.where(mask & ok[:, None], dev, 0.0)
+    coords = np.abs(dev[mask & ok[:, None]])
+    scale2 = (1.4826 * np.median(coords)) ** 2 if coords.size else 0.0
+    ratio = np.sum(d_free**2, axis=1) / max(scale2, 1e-300)
+    gross = ok & (ratio > chi2.ppf(0.999, np.maximum(dof, 1)))
+    inlier = mask & (ok & ~gross)[:, None]
+    var = float(np.mean(dev[inlier] ** 2)) if inlier.any() else 0.0
+    out = np.zeros_like(node)
+    k, a = np.nonzero(mask)
+    out[k, a, a] = var
+    for q in np.flatnonzero(gross):
+        out[q] = covariance_union(out[q], node[q])
+    return out
+
+
+def robust_fit(
+    x: np.ndarray, i: np.ndarray, j: np.ndarray, z: np.ndarray, free: np.ndarray, scale: float, anchors
+) -> np.ndarray:
+    """The Cauchy-robust fit of the pair ranges z that an estimate `x` (N, D) is measured against: `polish`
+    from `x` and from the classical MDS layout of the pair ranges (shortest paths for the missing pairs,
+    moved into the frame of `anchors`), whichever ends at the lower robust cost. From `x` alone, an estimate
+    that is metres off in a wrong basin (a filter that diverged, a node on its mirror side) would be
+    polished into that basin's local minimum, and its displacement from "the fit" would say it is right."""
+    from scipy.sparse.csgraph import shortest_path  # noqa: PLC0415
+
+    from jaxcal.mesh.frame import to_frame  # noqa: PLC0415
+
+    def cost(y):
+        e = np.linalg.norm(y[i] - y[j], axis=1) - z
+        return float(np.sum(np.log1p((e / scale) ** 2)))
+
+    def fit(start):  # polished, and in the frame's half plane (a2 at y >= 0: the mirror fits the ranges alike)
+        y = polish(start, i, j, z, free, scale)
+        if y.shape[1] == 2 and y[anchors[2], 1] < 0:
+            y = y * np.array([1.0, -1.0])
+        return y
+
+    best = fit(x)
+    n, d = x.shape
+    placed = np.isfinite(x).all(axis=1)
+    g = np.zeros((n, n))
+    g[i, j] = g[j, i] = np.maximum(z, 1e-9)
+    sub = np.flatnonzero(placed)
+    dist = shortest_path(g[np.ix_(sub, sub)], method="D", directed=False)
+    if not np.isfinite(dist).all():
+        return best
+    c = np.eye(sub.size) - 1.0 / sub.size
+    lam, vec = np.linalg.eigh(-0.5 * c @ (dist * dist) @ c)
+    start = np.full_like(x, np.nan)
+    start[sub] = vec[:, ::-1][:, :d] * np.sqrt(np.maximum(lam[::-1][:d], 0.0))
+    try:
+        start = to_frame(start, *anchors)
+    except (ValueError, ArithmeticError):
+        return best
+    if not np.isfinite(start[sub]).all():
+        return best
+    other = fit(start)
+    return other if cost(other) < cost(best) - 1e-9 * max(1.0, cost(best)) else best
 
 
 def polish(x: np.ndarray, i: np.ndarray, j: np.ndarray, z: np.ndarray, free: np.ndarray, scale: float) -> np.ndarray:

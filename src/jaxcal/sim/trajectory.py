@@ -12,6 +12,10 @@ Odometry drift (`drift`, [m / sqrt(s)]): the *reported* poses are the true ones 
 horizontal random walk per axis with that standard deviation per sqrt(second) (Brownian motion,
 z unaffected); the ranges are computed from the true poses, so drift is pose error the calibration
 must absorb. `drift=0` gives exact poses.
+
+Clock offset (`time_offset_s`): the reported poses are stamped on a clock that runs `time_offset_s` ahead
+of the range clock (pose clock minus range clock), the error that `estimate_offset` of the trajectory
+methods undoes.
 """
 
 from __future__ import annotations
@@ -105,6 +109,7 @@ def simulate(
     pose_rate_hz: float = 10.0,
     range_rate_hz: float = 20.0,
     speed_mps: float = 8.0,
+    time_offset_s: float = 0.0,
 ) -> TrajectoryDataset:
     """Simulate a trajectory scenario (host-side NumPy; same seed, same dataset).
 
@@ -116,6 +121,8 @@ def simulate(
         max_range_m: no range beyond this distance (scaled with the scenario).
         pose_rate_hz, range_rate_hz: pose and per-anchor ranging rates [Hz].
         speed_mps: vehicle speed [m/s] (scaled with the scenario).
+        time_offset_s: clock offset of the reported poses, pose clock minus range clock [s]: the pose taken
+            at true time t is stamped t + time_offset_s (the ranges keep the true time); 0 = one clock.
 
     Returns:
         TrajectoryDataset with anchor truth, per-range LOS labels and one tag.
@@ -174,7 +181,7 @@ def simulate(
         anchor_ids=tuple(f"A{i + 1:02d}" for i in range(n_anchors)),
         tag_ids=("T1",),
         lever_arm=lever,
-        pose_time=t,
+        pose_time=t + time_offset_s,
         pose_position=pos_rep,
         pose_orientation=quat,
         range_time=r_time[order],
@@ -183,6 +190,7 @@ def simulate(
         range=rng_m[order],
         range_los=los[order].astype(np.int8),
         anchor_truth=anchors,
-        description=f"simulated {scenario}: {SCENARIOS[scenario]}; seed {seed}, drift {drift} m/sqrt(s)",
+        description=f"simulated {scenario}: {SCENARIOS[scenario]}; seed {seed}, drift {drift} m/sqrt(s)"
+        + (f", pose clock offset {time_offset_s:g} s" if time_offset_s else ""),
         source="jaxcal.sim.trajectory",
     )

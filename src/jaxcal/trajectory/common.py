@@ -38,6 +38,7 @@ __all__ = [
     "height_dop_ratio",
     "unobservable_height",
     "widen_covariance",
+    "offset_covariances",
     "report_fits",
     "finish",
 ]
@@ -215,6 +216,18 @@ def widen_covariance(cov: np.ndarray, floor: np.ndarray) -> np.ndarray:
     return 0.5 * (out + out.T)
 
 
+def offset_covariances(info: dict, n_anchors: int) -> np.ndarray:
+    """(A, 3, 3) covariance of the anchors from the clock offset's uncertainty: var(tau) s_k s_k^T with
+    s_k = d a_k / d tau (`jaxcal.trajectory.offset.OffsetFit.sensitivity`) as `nls.prepare_offset` left
+    them in `info` (keys `time_offset_sd_s`, `offset_sensitivity`); zeros where no offset was estimated."""
+    sd = info.get("time_offset_sd_s", float("nan"))
+    sens = info.get("offset_sensitivity")
+    if sens is None or not np.isfinite(sd):
+        return np.zeros((n_anchors, 3, 3))
+    s = np.asarray(sens, dtype=float)
+    return sd**2 * s[:, :, None] * s[:, None, :]
+
+
 def report_fits(method: str, codes, groups, p, hint: str):
     """The solver outcome (`jaxcal.solver.report`) of the anchors that get a fit (at least `p.min_ranges`
     ranges), with its one warning line naming `method` and `hint` when a fit did not converge."""
@@ -241,7 +254,8 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None) -> Result:
     bad = (count < p.min_ranges) | ~np.isfinite(est).all(axis=1) | ~np.isfinite(cov).all(axis=(1, 2))
     est[bad] = np.nan
     cov[bad] = np.nan
-    pose_cov = pose_error_covariances(dataset, groups, est, p, method)
+    pose_cov = pose_error_covariances(dataset, groups, est, p, method) + offset_covariances(info, est.shape[0])
+    info = {k: v for k, v in info.items() if k != "offset_sensitivity"}
     cov = cov + pose_cov
     flat, zstd = unobservable_height(groups, est, p)
     if flat.any():

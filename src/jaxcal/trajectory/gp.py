@@ -104,7 +104,7 @@ from jaxcal.trajectory.gp_kernel import (
     stratified_subsample,
     to_target,
 )
-from jaxcal.trajectory.poses import prepare_poses
+from jaxcal.trajectory.nls import prepare_offset
 
 __all__ = [
     "GPParams",
@@ -181,10 +181,12 @@ class GPParams(TrajectoryParams):
         block, max_ranges: `mean=anchor` only: the GP's covariance is block-diagonal over blocks
             of `block` consecutive ranges, on at most `max_ranges` ranges per anchor (evenly thinned
             in time); `block=0` (default): one dense GP on the stratified `n_train` subsample.
+        estimate_offset: as for `nls` (on by default: the offset is fitted with `nls`'s anchors first).
         min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s: as for `ls`, and so are
-            max_gap_s, time_offset_s, estimate_offset, max_offset_s.
+            max_gap_s, time_offset_s, max_offset_s.
     """
 
+    estimate_offset: bool = True
     target: str = "range"
     mean: str = "anchor"
     nu: float = 1.5
@@ -478,7 +480,7 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
     matern(jnp.zeros(1), jnp.asarray(1.0), jnp.asarray(1.0), p.nu)  # validates nu
     if p.grid < 2 or p.top_k < 1 or p.top_k > p.grid**2 or not 0.0 < p.shrink < 1.0 or p.tol_m <= 0:
         raise JaxcalError("parameters grid >= 2, 1 <= top_k <= grid^2, 0 < shrink < 1, tol_m > 0 required")
-    groups, info = prepare_poses(dataset, p)
+    groups, info = prepare_offset(dataset, p)
     pos = np.asarray(groups.position)
     rng_m = np.asarray(groups.range)
     mask = np.asarray(groups.mask)

@@ -13,7 +13,7 @@ from jaxcal.data import Result
 from jaxcal.params import with_overrides
 from jaxcal.precision import in_float64
 from jaxcal.trajectory.common import TrajectoryParams, finish, multilaterate_all
-from jaxcal.trajectory.poses import prepare_poses
+from jaxcal.trajectory.nls import prepare_offset
 
 __all__ = ["LSParams", "calibrate"]
 
@@ -33,7 +33,7 @@ def calibrate(dataset, params=None, config=None) -> Result:
         Result with `position` (A, 3) and `covariance` (A, 3, 3); NaN for anchors with too few ranges.
     """
     p = with_overrides(LSParams(), params)
-    groups, info = prepare_poses(dataset, p)
+    groups, info = prepare_offset(dataset, p)
     est, cov = jax.jit(multilaterate_all, static_argnums=(3, 4, 5))(
         groups.position, groups.range, groups.mask, p.planar_tol_m, p.side, p.planar_ratio
     )

@@ -22,8 +22,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from jaxcal.precision import in_float64
 from jaxcal.trajectory import bspline
 from jaxcal.trajectory.common import TrajectoryParams, multilaterate_all
+from jaxcal.trajectory.offset import estimate
 
 __all__ = [
     "AnchorRanges",
@@ -34,6 +36,7 @@ __all__ = [
     "tag_positions",
     "group_by_anchor",
     "estimate_time_offset",
+    "estimate_offset_fit",
     "prepare",
     "prepare_poses",
 ]
@@ -270,7 +273,8 @@ def prepare(
         ds: TrajectoryDataset.
         order, knot_dt_s, max_gap_s: B-spline settings (`fit_poses`).
         time_offset_s: pose clock minus range clock [s], used when `estimate_offset` is False.
-        estimate_offset: estimate the offset by `estimate_time_offset` within +-`max_offset_s`.
+        estimate_offset: estimate the offset by the grid search `estimate_time_offset` within +-`max_offset_s`
+            (the methods instead estimate it jointly with the anchors: `jaxcal.trajectory.nls.prepare_offset`).
         max_per_anchor: cap of ranges per anchor (0 = all).
 
     Returns:
@@ -298,6 +302,17 @@ def prepare(
         "ranges_dropped": int((~ok).sum()),
     }
     return groups, info
+
+
+@in_float64
+def estimate_offset_fit(model: PoseModel, ds, anchors, bias, start_s: float = 0.0, max_offset_s: float = 1.0):
+    """The clock offset of `ds` with its standard deviation (`jaxcal.trajectory.offset.estimate`: from
+    `start_s` [s] and the anchors (A, 3) [m] and range biases (A,) [m] fitted at it, within +-`max_offset_s`):
+    an `OffsetFit`."""
+    pos_fn = jax.tree_util.Partial(tag_positions, model, jnp.asarray(ds.lever_arm))
+    return estimate(
+        pos_fn, ds.range_time, ds.range_tag, ds.range_anchor, ds.range, anchors, bias, start_s, max_offset_s
+    )
 
 
 def prepare_poses(dataset, p: TrajectoryParams) -> tuple[AnchorRanges, dict]:
