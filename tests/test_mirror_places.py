@@ -6,7 +6,6 @@ import numpy as np
 from scipy.stats import chi2
 
 from jaxcal.trajectory import mirror, nls
-from jaxcal.trajectory.poses import prepare_poses
 from test_trajectory_mirror import sloped_campaign
 
 
@@ -41,15 +40,16 @@ def test_side_test_variance_over_route_cells_equals_the_explicit_sums(rng):
 def test_every_fit_across_the_plane_the_side_test_cannot_reject_lies_in_the_ellipsoid(rng):
     """A bumpy sloped path with an error on every pass through one place (0.3 m): slow reference = explicit
     SciPy refits of the in-plane position and bias at fixed distances u from the path's plane (Cauchy loss at
-    the check's scale), scored against the estimate by the place-and-time clustered z (`_z_reference`); each
-    one the test cannot reject (z <= mirror_z) lies inside the reported 95 % ellipsoid (3-D where the height
-    is kept, its horizontal part where it is NaN)."""
+    the check's scale), scored against the estimate by the place-and-time clustered z (`_z_reference`) on the
+    estimate's side of the plane and by the time z on the other; each one the test cannot reject
+    (z <= mirror_z) lies inside the reported 95 % ellipsoid (3-D where the height is kept, its horizontal part
+    where it is NaN)."""
     from scipy.optimize import least_squares
 
     ds = sloped_campaign(int(rng.integers(1 << 30)), bumps_m=0.3, height_m=0.8, zone_m=0.3)
     res = nls.calibrate(ds)
     p = nls.NLSParams()
-    groups, _ = prepare_poses(ds, p)
+    groups, _ = nls.prepare_offset(ds, p)  # the groups nls.calibrate fits (clock offset applied)
     m = np.asarray(groups.mask[0])
     pos, r = np.asarray(groups.position[0])[m], np.asarray(groups.range[0])[m]
     cells = nls.route_cells(groups, p)[0][0][m]
@@ -80,7 +80,8 @@ def test_every_fit_across_the_plane_the_side_test_cannot_reject_lies_in_the_elli
         y0 = [(x0[:3] - centre) @ e1, (x0[:3] - centre) @ e2, x0[3]]
         fit = least_squares(residual, y0, loss="cauchy", f_scale=scale, xtol=1e-10, ftol=1e-10)
         diff = np.log1p((residual(fit.x) / scale) ** 2) - np.log1p((res0 / scale) ** 2)
-        if _z_reference(diff, np.ones(r.size, bool), 16, cells)[1] > p.mirror_z:
+        own = u * np.sign(u0) >= 0.0  # the place z on the estimate's side, the time z on the other
+        if _z_reference(diff, np.ones(r.size, bool), 16, cells)[1 if own else 0] > p.mirror_z:
             continue
         tested += 1
         d = (anchor(fit.x) - res.position[0])[fin]
@@ -94,7 +95,7 @@ def test_the_side_is_decided_by_the_fit_not_by_its_covariance(rng):
     seed = int(rng.integers(1 << 30))
     for ds in (sloped_campaign(seed), sloped_campaign(seed, bumps_m=0.3, height_m=0.5, stretch_m=0.1)):
         p = nls.NLSParams()
-        groups, _ = prepare_poses(ds, p)
+        groups, _ = nls.prepare_offset(ds, p)  # the groups nls.calibrate fits (clock offset applied)
         (est, cov, _, _), _, _ = nls.solve_all_checked(groups, p)
         a = mirror.compare_sides(groups, np.asarray(est), np.asarray(cov), p)
         b = mirror.compare_sides(groups, np.asarray(est), 30.0 * np.asarray(cov), p)

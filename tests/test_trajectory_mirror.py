@@ -91,14 +91,13 @@ def test_nan_height_horizontal_ellipse_holds_the_fit_at_every_height_near_the_pl
     from scipy.stats import chi2
 
     from jaxcal.trajectory import mirror
-    from jaxcal.trajectory.poses import prepare_poses
 
     ds = sloped_campaign(int(rng.integers(1 << 30)), noise_m=0.05 + 0.1 * rng.random())
     res = nls.calibrate(ds)
     assert res.params["info_mirror_ambiguous"] == ["a0"] and np.isnan(res.position[0, 2])
     cov = res.covariance[0, :2, :2]
     assert np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov).min() > 0
-    groups, _ = prepare_poses(ds, nls.NLSParams())
+    groups, _ = nls.prepare_offset(ds, nls.NLSParams())  # as nls.calibrate (clock offset applied)
     m = np.asarray(groups.mask[0])
     pos, r = np.asarray(groups.position[0])[m], np.asarray(groups.range[0])[m]
     centre, n = (np.asarray(v) for v in mirror.local_plane(pos, r, np.ones(r.size, bool)))
