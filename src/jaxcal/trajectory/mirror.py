@@ -40,15 +40,12 @@ a third of the anchors, height errors of 2-5 m with predicted sd of 0.05-0.3 m).
    there, and the curvature-based covariance misses the height and the horizontal shift that goes with it
    (development campaigns, seeds 200-209: anchors 0.8-0.9 m above the path fitted at the plane, 0.5 m
    off horizontally for 0.07-0.3 m predicted, none of them with a second optimum for step 1 to find).
-   Every fit of the inner span on the estimate's side of the plane whose place-clustered z (step 2's
-   second) is <= `mirror_z`, and every other fit whose time-clustered z is, widens the covariance so that
-   its displacement d from the estimate lies within max(z, 1) standard deviations (C >= d d^T / max(z, 1)^2):
-   a kept height then has a covariance that reaches, on its own side, wherever an error tied to a place
-   could explain the difference (simulated seed 29: an anchor 0.6 m too high with 0.07 m predicted, whose
-   true height's fit, on the same side, scored z = 3.6 over time stretches and 1.9 over route cells). On
-   the other side the place z is not used: with 4-6 route cells it stays within `mirror_z` over much of the
-   span, and the covariance reached fits metres away (odd seeds, no drift: predicted RMS 1-29 m for
-   0.1-0.8 m errors, NEES/dof median 0.18).
+   Every fit of the inner span whose place-clustered z (step 2's second) is <= `mirror_z`, and every outer
+   one whose time-clustered z is, widens the covariance so that its displacement d from the estimate lies
+   within max(z, 1) standard deviations (C >= d d^T / max(z, 1)^2), on either side of the plane: a height
+   kept by the side test then has a covariance that reaches the other side wherever an error tied to a
+   place could explain the difference (simulated seed 29: an anchor 0.6 m too high with 0.07 m predicted,
+   whose true height's fit scored z = 3.6 over time stretches and 1.9 over route cells).
    A fit of the first `mirror_profile` (the span from the fit alone, so that a wider covariance cannot flip
    the decision) with time-clustered z <= `mirror_z` on the other side of the plane, more than
    `mirror_min_sep_m` from the estimate, leaves the height NaN as in step 3. A
@@ -367,14 +364,14 @@ def _apply_profile(out: SideCheck, todo, planar, data, fit, p) -> None:
         z_side, z_wide = zk[k][:, 0], zk[k][:, 1]  # over time stretches; over stretches and route cells
         converged = (codes[k] == S.CONVERGED) & np.isfinite(z_side) & np.isfinite(z_wide)
         keep = converged & (z_side <= p.mirror_z)
+        # the place-clustered z widens on the inner grid (the estimate's mirror image and a metre beyond); the
+        # outer points, as far as the covariance reaches, by the time z as before (with few cells the place z
+        # stays below mirror_z far out, and the outer points then widened to metres for decimetre errors)
+        inner_k = np.arange(keep.size) < int(p.mirror_profile)
+        wide = (converged & (z_wide <= p.mirror_z) & inner_k) | (keep & ~inner_k)
+        z_wide = np.where(inner_k, z_wide, z_side)
         u_est = float((out.position[a] - centre[k]) @ normal[k])
         u_all = (pts[k] - centre[k]) @ normal[k]
-        # the place-clustered z widens on the inner grid on the estimate's own side of the plane only; the other
-        # side and the outer points by the time z as before (with 4-6 cells the place z stays below mirror_z
-        # over much of the span: the other side's fits, metres away, widened to 1-29 m for decimetre errors)
-        own = (np.arange(keep.size) < int(p.mirror_profile)) & (u_all * np.sign(u_est) >= 0.0)
-        wide = (converged & (z_wide <= p.mirror_z) & own) | (keep & ~own)
-        z_wide = np.where(own, z_wide, z_side)
         if planar[k]:
             conventional = u_all * p.side >= min(0.0, u_est * p.side)
             keep &= conventional
