@@ -10,7 +10,9 @@ Per anchor with a finite estimate: the error e (3-D; split into horizontal and v
 e^T C^-1 e over the finite coordinates (an unobservable coordinate reported as NaN is left out, and
 counted), and whether the truth is inside the 95 % ellipsoid; the same for the horizontal (x, y) and vertical
 (z) parts apart. Printed (JSON lines): one line per (dataset, method), then one summary line per method
-over the simulated campaigns.
+over the simulated campaigns (coverage as the mean of the campaigns' and, `coverage95_h` / `_v`, pooled over
+all anchors; `outside95` = anchors reported as fixed whose truth is outside: confidently wrong; mean errors
+over anchors, 3-D over the finite coordinates and horizontal).
 
 Usage:
     python benchmarks/uncertainty_trajectory.py [--methods nls,ls] [--sim-seeds 0-19 | 1,3,5] [--no-real]
@@ -79,8 +81,10 @@ def anchor_figures(res, truth) -> list[dict]:
                 sd_m=float(np.sqrt(np.trace(cf))),
                 h_nees=float(e[:2] @ np.linalg.solve(c[:2, :2], e[:2])),
             )
+            row["h_inside"] = bool(row["h_nees"] <= chi2.ppf(0.95, 2))
             if fin[2]:
                 row["v_nees"] = float(e[2] ** 2 / c[2, 2])
+                row["v_inside"] = bool(row["v_nees"] <= chi2.ppf(0.95, 1))
         rows.append(row)
     return rows
 
@@ -97,11 +101,21 @@ def line(label, method, rows):
         "v_nees_per_dof": float(np.mean(v)) if (v := [r["v_nees"] for r in used if "v_nees" in r]) else float("nan"),
         "outside95": sum(not r["inside"] for r in used),
         "coverage95": float(np.mean([r["inside"] for r in used])) if used else float("nan"),
+        "inside_h": [sum(r["h_inside"] for r in used), len(used)],
+        "inside_v": [sum(r["v_inside"] for r in used if "v_inside" in r), sum("v_inside" in r for r in used)],
+        "mean_error_m": float(np.mean([r["error_m"] for r in rows])) if rows else float("nan"),
+        "mean_h_error_m": float(np.mean([r["h_error_m"] for r in rows])) if rows else float("nan"),
         "rmse_m": float(np.sqrt(np.mean([r["error_m"] ** 2 for r in used]))) if used else float("nan"),
         "pred_rmse_m": float(np.sqrt(np.mean([r["sd_m"] ** 2 for r in used]))) if used else float("nan"),
         "nan_axes": sum(r["nan_axes"] for r in rows),
         "worst": max(used, key=lambda r: r["nees"], default=None),
     }
+
+
+def _pooled(lines, key):
+    """Fraction inside over all campaigns' anchors, from each line's [inside, counted]."""
+    inside, counted = (sum(x[key][i] for x in lines) for i in (0, 1))
+    return inside / counted if counted else None
 
 
 def _seed_range(text: str) -> range:
@@ -155,6 +169,10 @@ def main(argv=None) -> int:
                     "nees_dof_worst": float(np.max(nees)) if nees else None,
                     "outside95": sum(x["outside95"] for x in sims[m]),
                     "nan_heights": sum(x["nan_axes"] for x in sims[m]),
+                    "coverage95_h": _pooled(sims[m], "inside_h"),
+                    "coverage95_v": _pooled(sims[m], "inside_v"),
+                    "mean_error_m": float(np.mean([x["mean_error_m"] for x in sims[m]])) if sims[m] else None,
+                    "mean_h_error_m": float(np.mean([x["mean_h_error_m"] for x in sims[m]])) if sims[m] else None,
                 }
             ),
             flush=True,

@@ -4,8 +4,8 @@ once however often the route passes it."""
 import numpy as np
 import pytest
 
-from jaxcal.data import TrajectoryDataset
 from jaxcal.trajectory import nls
+from trajectory_campaigns import one_anchor_dataset
 
 
 def test_cell_jackknife_equals_leave_one_cell_out_refits(rng):
@@ -47,26 +47,11 @@ def laps(seed, n_laps=6, zone_m=0.4, noise_m=0.05):
         return np.stack([15 * np.cos(ang), 15 * np.sin(ang), 1.5 * np.sin(3 * ang)], 1), ang + np.pi / 2
 
     t = np.arange(0, n_laps * period, 0.1)
-    p, yaw = body(t)
-    q = np.stack([0 * t, 0 * t, np.sin(yaw / 2), np.cos(yaw / 2)], 1)
     rt = np.arange(0.05, t[-1] - 0.05, 0.05)
     pr, _ = body(rt)
     zone = np.mod(np.arctan2(pr[:, 1], pr[:, 0]) - gen.uniform(0, 6.3), 2 * np.pi) < np.pi / 2
     r = np.linalg.norm(pr - anchor[0], axis=1) + 0.1 + zone_m * zone + noise_m * gen.normal(size=rt.size)
-    return TrajectoryDataset(
-        name="laps",
-        anchor_ids=["a0"],
-        tag_ids=["t"],
-        lever_arm=[[0.0, 0.0, 0.0]],
-        pose_time=t,
-        pose_position=p,
-        pose_orientation=q,
-        range_time=rt,
-        range_anchor=np.zeros(rt.size, int),
-        range_tag=np.zeros(rt.size, int),
-        range=r,
-        anchor_truth=anchor,
-    )
+    return one_anchor_dataset("laps", body, anchor, t, rt, r)
 
 
 def test_an_error_tied_to_a_place_and_repeated_every_lap_widens_the_ellipse_towards_it(rng):
@@ -77,7 +62,7 @@ def test_an_error_tied_to_a_place_and_repeated_every_lap_widens_the_ellipse_towa
     leaves the rest). The positions are unchanged and the covariance only widens."""
     ds = laps(int(rng.integers(1 << 30)))
     res = nls.calibrate(ds)
-    off = nls.calibrate(ds, {"cov_cell_m": 0.0})
+    off = nls.calibrate(ds, {"cov_cell_m": 0.0, "cov_cells": 0.0})
     np.testing.assert_allclose(res.position[0], off.position[0])
     c, c0 = res.covariance[0, :2, :2], off.covariance[0, :2, :2]
     assert np.allclose(c, c.T) and np.linalg.eigvalsh(c - c0).min() > -1e-12
@@ -91,3 +76,27 @@ def test_a_cell_size_that_means_nothing_is_a_clear_error():
     for bad in (-1.0, float("nan")):
         with pytest.raises(JaxcalError, match="cov_cell_m"):
             nls.calibrate(laps(0), {"cov_cell_m": bad})
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(JaxcalError, match="cov_cells"):
+            nls.calibrate(laps(0), {"cov_cells": bad})
+
+
+def test_route_cells_are_scale_free_and_do_not_depend_on_the_frame(rng):
+    """Cells from the route's box (`cov_cells`): the same campaign in another unit of length, shifted and with
+    x and y swapped, gets the same cells; a fixed side (`cov_cell_m`) is the grid of `cell_labels`."""
+    from types import SimpleNamespace
+
+    ds = laps(int(rng.integers(1 << 30)))
+    pos = np.asarray(ds.pose_position)[None, ::3]
+    mask = np.ones(pos.shape[:2], bool)
+    mask[0, -7:] = False
+    k, shift = 0.1 + 10 * rng.random(), rng.normal(size=3) * 100
+    moved = pos[..., [1, 0, 2]] * k + shift
+    for cells in (2.0, 3.0, 4.0):
+        p = SimpleNamespace(cov_cells=cells, cov_cell_m=0.0)
+        a, n_a = nls.route_cells(SimpleNamespace(position=pos, mask=mask), p)
+        b, n_b = nls.route_cells(SimpleNamespace(position=moved, mask=mask), p)
+        # the same partition of the ranges (labels are numbered by first visit, so equal)
+        assert n_a == n_b and (a == b).all() and 2 <= n_a <= cells**2
+    fixed, _ = nls.route_cells(SimpleNamespace(position=pos, mask=mask), SimpleNamespace(cov_cells=2.0, cov_cell_m=7.0))
+    assert (fixed == nls.cell_labels(pos, mask, 7.0)[0]).all()

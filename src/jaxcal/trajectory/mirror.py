@@ -20,22 +20,35 @@ a third of the anchors, height errors of 2-5 m with predicted sd of 0.05-0.3 m).
    consecutive stretches, and the sum D [nats] is divided by its sandwich standard
    deviation sqrt(G / (G - 1) sum_g (D_g - D / G)^2 + 1) (the 1 nat^2: a difference of a few nats is no
    evidence, and an exact mirror gives a 0 / 0 of rounding errors). Counted as independent, thousands of ranges would
-   make any difference "significant"; errors that persist along a stretch count once.
+   make any difference "significant"; errors that persist along a stretch count once. A second z divides
+   by the larger of that variance and the same sandwich over nls's route cells (`nls.route_cells`): an error
+   tied to a place (an NLOS zone) repeats on every pass, and stretches in time count each pass anew. The
+   side is decided by the first z (the second made 60 of 60 heights NaN on the development campaigns, also
+   those within 5 cm); the covariance is widened by the second (step 4).
 3. z = D / sd > `mirror_z`: the mirror fits clearly worse, the estimate is kept. z < -`mirror_z`: the
-   mirror fits clearly better: it replaces the estimate (with the `nls` covariance at it). Otherwise the
+   mirror fits clearly better: it replaces the estimate (with the `nls` covariance at it, route cells
+   included, and the profile of step 4 taken about it, as about a kept estimate). Otherwise the
    ranges cannot tell the sides apart: the height is left NaN by `finish` and the horizontal covariance
    is widened to the second moment of the two optima about the estimate (+ d d^T / 2, d the horizontal
    shift between them).
 4. The profile across the plane (`mirror_profile` fits, 0 = off): the anchor's distance u from the plane is
-   fixed at each of `mirror_profile` values spread over [-U, U] (U = |u| of the estimate + max(1 m, 2 sd
-   along the normal)), the rest refitted, and each fit compared with the estimate's as in step 2. Near the
+   fixed at each of `mirror_profile` values spread over [-U, U] (U = |u| of the estimate + 1 m: the
+   estimate's mirror image and a metre beyond, from the fit alone), and at four more out to
+   |u| + max(1 m, 2 sd along the normal), the rest refitted, and each fit compared with the estimate's as in
+   step 2. Near the
    plane the ranges hardly depend on u (their derivative is u / r), the cost is flat and not quadratic
    there, and the curvature-based covariance misses the height and the horizontal shift that goes with it
    (development campaigns, seeds 200-209: anchors 0.8-0.9 m above the path fitted at the plane, 0.5 m
    off horizontally for 0.07-0.3 m predicted, none of them with a second optimum for step 1 to find).
-   Every profile fit with z <= `mirror_z` widens the covariance so that its displacement d from the
-   estimate lies within max(z, 1) standard deviations (C >= d d^T / max(z, 1)^2); one on the other side
-   of the plane, more than `mirror_min_sep_m` from the estimate, leaves the height NaN as in step 3. A
+   Every fit of the inner span whose place-clustered z (step 2's second) is <= `mirror_z`, and every outer
+   one whose time-clustered z is, widens the covariance so that its displacement d from the estimate lies
+   within max(z, 1) standard deviations (C >= d d^T / max(z, 1)^2), on either side of the plane: a height
+   kept by the side test then has a covariance that reaches the other side wherever an error tied to a
+   place could explain the difference (simulated seed 29: an anchor 0.6 m too high with 0.07 m predicted,
+   whose true height's fit scored z = 3.6 over time stretches and 1.9 over route cells).
+   A fit of the first `mirror_profile` (the span from the fit alone, so that a wider covariance cannot flip
+   the decision) with time-clustered z <= `mirror_z` on the other side of the plane, more than
+   `mirror_min_sep_m` from the estimate, leaves the height NaN as in step 3. A
    planar path (`is_planar`: no side test) gets the profile on its conventional side (`side`) only.
 5. Where the height is left NaN (steps 3 or 4), the horizontal fit depends on the height the ranges cannot
    tell: the fit at every height of the profile's span is as good an answer. The horizontal covariance gets
@@ -61,7 +74,7 @@ import optimistix as optx
 
 from jaxcal import solver as S
 from jaxcal.trajectory.common import is_planar, widen_covariance
-from jaxcal.trajectory.nls import irls_covariance
+from jaxcal.trajectory.nls import irls_covariance, robust_covariance, route_cells
 
 __all__ = ["SideCheck", "local_plane", "compare_sides"]
 
@@ -143,7 +156,9 @@ def _cauchy_fit(pos, rng, mask, x0, c, max_steps: int):
     return sol.value, S.outcome(sol)
 
 
-def _compare_one(pos, rng, mask, est, n_clusters: int, min_scale: float, max_steps: int, cov_clusters: int = 4):
+def _compare_one(
+    pos, rng, mask, est, cells, n_clusters: int, min_scale: float, max_steps: int, n_cells: int, cov_clusters: int = 4
+):
     r_est = rng - _dist(pos, est)
     b0 = jnp.nanmedian(jnp.where(mask, r_est, jnp.nan))
     c = jnp.maximum(2.385 * 1.4826 * jnp.nanmedian(jnp.where(mask, jnp.abs(r_est - b0), jnp.nan)), min_scale)
@@ -155,40 +170,62 @@ def _compare_one(pos, rng, mask, est, n_clusters: int, min_scale: float, max_ste
     res1 = _dist(pos, x1[:3]) + x1[3] - rng
     # + 1 nat^2 in the variance (`_vuong_z`): an exact mirror (a path in one plane) gives a difference and a
     # variance of rounding size, whose ratio means nothing; a difference below a few nats is no evidence.
-    z = _vuong_z(res1, res0, mask, c, n_clusters)
+    z = _vuong_z(res1, res0, mask, c, n_clusters, cells, n_cells)
+    z = jnp.stack(z)
     # nls's covariance at the other optimum (used where it replaces the estimate).
     w1 = jnp.where(mask, 1.0 / (1.0 + (res1 / c) ** 2), 0.0)
     sw1 = jnp.sqrt(w1)
     jac = jax.jacfwd(lambda x: sw1 * (_dist(pos, x[:3]) + x[3] - rng))(x1)
-    cov1 = irls_covariance(jac, sw1 * res1, w1, mask, (cov_clusters, n_clusters))[:3, :3]
-    return x0[:3], x1[:3], jnp.maximum(k0, k1), z, cov1, x0, c, centre, n
+    cov1 = irls_covariance(jac, sw1 * res1, w1, mask, (cov_clusters, n_clusters))
+    if n_cells > 1:  # and over route cells, as nls's reported covariance (`nls.cell_covariances`)
+        cov1 = robust_covariance(cov1, jac, sw1 * res1, mask, n_cells, cells)
+    return x0[:3], x1[:3], jnp.maximum(k0, k1), z, cov1[:3, :3], x0, x1, c, centre, n
 
 
-def _vuong_z(res, res0, mask, c, n_clusters: int):
-    """Cauchy log-likelihood difference of residuals `res` against `res0` over its cluster-robust sd (step 2)."""
+def _vuong_z(res, res0, mask, c, n_clusters: int, cells=None, n_cells: int = 0):
+    """Cauchy log-likelihood difference of residuals `res` against `res0` over its cluster-robust sd (step 2).
+
+    The variance is the larger of the sandwich over `n_clusters` consecutive stretches and, where `cells`
+    ((n,) route-cell labels in [0, n_cells), padding n_cells; `jaxcal.trajectory.nls.cell_labels`) are given,
+    over the route cells that hold ranges: an error tied to a place repeats on every pass, and the stretches
+    in time count each pass as independent evidence."""
     diff = jnp.where(mask, _nll(res, c) - _nll(res0, c), 0.0)
     n_valid = jnp.maximum(jnp.sum(mask), 1)
     cluster = jnp.where(mask, ((jnp.cumsum(mask) - 1) * n_clusters) // n_valid, n_clusters)
     d_g = jax.ops.segment_sum(diff, cluster, n_clusters + 1)[:n_clusters]
     d = jnp.sum(d_g)
     var = n_clusters / (n_clusters - 1.0) * jnp.sum((d_g - d / n_clusters) ** 2)
-    return d / jnp.sqrt(var + 1.0)
+    z_time = d / jnp.sqrt(var + 1.0)
+    if cells is not None and n_cells > 1:
+        d_c = jax.ops.segment_sum(diff, cells, n_cells + 1)[:n_cells]
+        used = jax.ops.segment_sum(mask.astype(diff.dtype), cells, n_cells + 1)[:n_cells] > 0
+        g = jnp.sum(used).astype(diff.dtype)
+        var_c = g / jnp.maximum(g - 1.0, 1.0) * jnp.sum(jnp.where(used, d_c - d / jnp.maximum(g, 1.0), 0.0) ** 2)
+        var = jnp.maximum(var, jnp.where(g > 1, var_c, 0.0))
+    return z_time, d / jnp.sqrt(var + 1.0)
 
 
-def _profile_one(pos, rng, mask, x0, c, centre, n, sd_n, n_clusters: int, max_steps: int, n_grid: int):
+def _profile_one(
+    pos, rng, mask, x0, c, centre, n, sd_n, cells, n_clusters: int, max_steps: int, n_grid: int, n_cells: int
+):
     """Profile of the fit across the path's plane (one anchor): the anchor's distance from the plane
-    fixed at each of `n_grid` values u_k in [-U, U], U = |u0| + max(1 m, 2 x sd_n) (u0 that of the fit
-    x0 = (anchor, bias), sd_n its standard deviation along the normal n), the in-plane position and the
-    bias refitted (Cauchy loss at the scale c). Returns ((K, 3) profile anchors, (K,) z of each against x0
-    (`_vuong_z`), (K,) outcome codes)."""
+    fixed at each of `n_grid` values u_k in [-U, U], U = |u0| + 1 m (u0 that of the fit x0 = (anchor, bias);
+    from the fit alone: these decide the side), then at -V, -(U + V) / 2, (U + V) / 2, V with
+    V = |u0| + max(1 m, 2 x sd_n) (sd_n the standard deviation along the normal n: these only widen), each
+    capped at the longest range; the in-plane position and the bias refitted (Cauchy loss at the scale c).
+    Returns ((K, 3) profile anchors, (K, 2) z of each against x0 (`_vuong_z`: over time stretches; over
+    stretches and route cells), (K,) outcome codes), K = n_grid + 4."""
     ref = jnp.where(jnp.abs(n[0]) < 0.9, jnp.array([1.0, 0.0, 0.0]), jnp.array([0.0, 1.0, 0.0]))
     e1 = ref - jnp.dot(ref, n) * n
     e1 = e1 / jnp.linalg.norm(e1)
     e2 = jnp.cross(n, e1)
     rel = x0[:3] - centre
     u0 = jnp.dot(rel, n)
-    span = jnp.abs(u0) + jnp.maximum(1.0, 2.0 * jnp.where(jnp.isfinite(sd_n), sd_n, 1.0))
-    span = jnp.minimum(span, jnp.max(jnp.where(mask, rng, 0.0)))
+    reach = jnp.max(jnp.where(mask, rng, 0.0))
+    inner = jnp.minimum(jnp.abs(u0) + 1.0, reach)  # the decision's span: from the fit alone
+    span = jnp.minimum(jnp.abs(u0) + jnp.maximum(1.0, 2.0 * jnp.where(jnp.isfinite(sd_n), sd_n, 1.0)), reach)
+    mid = 0.5 * (inner + span)
+    outer = jnp.stack([-span, -mid, mid, span])  # beyond it, as far as the covariance reaches: widening only
     res0 = _dist(pos, x0[:3]) + x0[3] - rng
 
     def at(u):
@@ -206,22 +243,30 @@ def _profile_one(pos, rng, mask, x0, c, centre, n, sd_n, n_clusters: int, max_st
         )
         a = to_anchor(sol.value)
         res = _dist(pos, a) + sol.value[2] - rng
-        return a, _vuong_z(res, res0, mask, c, n_clusters), S.outcome(sol)
+        return a, jnp.stack(_vuong_z(res, res0, mask, c, n_clusters, cells, n_cells)), S.outcome(sol)
 
-    return jax.vmap(at)(jnp.linspace(-1.0, 1.0, n_grid) * span)
+    return jax.vmap(at)(jnp.concatenate([jnp.linspace(-1.0, 1.0, n_grid) * inner, outer]))
 
 
 @eqx.filter_jit
-def _compare_all(pos, rng, mask, est, n_clusters: int, min_scale: float, max_steps: int, cov_clusters: int = 4):
-    return jax.vmap(lambda p, r, m, e: _compare_one(p, r, m, e, n_clusters, min_scale, max_steps, cov_clusters))(
-        pos, rng, mask, est
+def _compare_all(arrays: tuple, n_clusters: int, min_scale: float, max_steps: int, n_cells: int, cov_clusters: int = 4):
+    """`_compare_one` vmapped over anchors; `arrays` = (pos, rng, mask, est, cells), each batched."""
+    one = functools.partial(
+        _compare_one,
+        n_clusters=n_clusters,
+        min_scale=min_scale,
+        max_steps=max_steps,
+        n_cells=n_cells,
+        cov_clusters=cov_clusters,
     )
+    return jax.vmap(one)(*arrays)
 
 
 @eqx.filter_jit
-def _profile_all(arrays: tuple, n_clusters: int, max_steps: int, n_grid: int):
-    """`_profile_one` vmapped over anchors; `arrays` = (pos, rng, mask, x0, c, centre, n, sd_n), each batched."""
-    one = functools.partial(_profile_one, n_clusters=n_clusters, max_steps=max_steps, n_grid=n_grid)
+def _profile_all(arrays: tuple, n_clusters: int, max_steps: int, n_grid: int, n_cells: int):
+    """`_profile_one` vmapped over anchors; `arrays` = (pos, rng, mask, x0, c, centre, n, sd_n, cells), each
+    batched."""
+    one = functools.partial(_profile_one, n_clusters=n_clusters, max_steps=max_steps, n_grid=n_grid, n_cells=n_cells)
     return jax.vmap(one)(*arrays)
 
 
@@ -262,19 +307,20 @@ def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
     if p.mirror_z <= 0 or todo.size == 0:
         return out
     rng = np.asarray(groups.range)
-    x0, x1, code, z, cov1, x0b, scale, centre, normal = (
-        np.asarray(v)
+    cells, n_cells = route_cells(groups, p)
+    cells = cells[todo]
+    x0, x1, code, z, cov1, x0b, x1b, scale, centre, normal = (
+        np.array(v)
         for v in _compare_all(
-            jnp.asarray(pos[todo]),
-            jnp.asarray(rng[todo]),
-            jnp.asarray(mask[todo]),
-            jnp.asarray(est[todo]),
+            tuple(jnp.asarray(v[todo]) for v in (pos, rng, mask, est)) + (jnp.asarray(cells),),
             int(getattr(p, "n_clusters", 16)),
             float(getattr(p, "min_scale_m", 0.05)),
             200,
+            n_cells,
             int(getattr(p, "cov_clusters", 4)),
         )
     )
+    z = z[:, 0]  # the side: z over time stretches (module doc, step 2)
     distinct = (code == S.CONVERGED) & (np.linalg.norm(x1 - x0, axis=1) > p.mirror_min_sep_m) & np.isfinite(z)
     for k, a in enumerate(todo.tolist()):
         if not distinct[k] or planar[a]:
@@ -285,12 +331,13 @@ def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
             out.other[a] = est[a]
             out.position[a] = x1[k]
             out.covariance[a] = 0.5 * (cov1[k] + cov1[k].T)
+            x0b[k] = x1b[k]  # the profile (step 4) is taken about the fit that replaced the estimate
         elif z[k] <= p.mirror_z:
             out.ambiguous[a] = True
             dh = x1[k, :2] - est[a, :2]
             out.covariance[a, :2, :2] += 0.5 * np.outer(dh, dh)
     if p.mirror_profile > 1:
-        _apply_profile(out, todo, planar[todo], (pos, rng, mask), (x0b, scale, centre, normal), p)
+        _apply_profile(out, todo, planar[todo], (pos, rng, mask, cells, n_cells), (x0b, scale, centre, normal), p)
     return out
 
 
@@ -299,40 +346,46 @@ def _apply_profile(out: SideCheck, todo, planar, data, fit, p) -> None:
     not moved; the profile fits within `mirror_z` widen the covariance, and one on the other side of the
     plane, more than `mirror_min_sep_m` from the estimate, leaves the height NaN (`ambiguous`). A planar
     path (`planar`, (len(todo),)) has its side by convention (`p.side`): only that side's fits count."""
-    pos, rng, mask = data
+    pos, rng, mask, cells, n_cells = data
     x0b, scale, centre, normal = fit
     cov = out.covariance[todo]
     sd_n = np.sqrt(np.maximum(np.einsum("ai,aij,aj->a", normal, np.nan_to_num(cov), normal), 0.0))
     pts, zk, codes = (
         np.asarray(v)
         for v in _profile_all(
-            tuple(jnp.asarray(v) for v in (pos[todo], rng[todo], mask[todo], x0b, scale, centre, normal, sd_n)),
+            tuple(jnp.asarray(v) for v in (pos[todo], rng[todo], mask[todo], x0b, scale, centre, normal, sd_n, cells)),
             int(getattr(p, "n_clusters", 16)),
             100,
             int(p.mirror_profile),
+            n_cells,
         )
     )
     for k, a in enumerate(todo):
-        if out.moved[a]:
-            continue
-        converged = (codes[k] == S.CONVERGED) & np.isfinite(zk[k])
-        keep = converged & (zk[k] <= p.mirror_z)
+        z_side, z_wide = zk[k][:, 0], zk[k][:, 1]  # over time stretches; over stretches and route cells
+        converged = (codes[k] == S.CONVERGED) & np.isfinite(z_side) & np.isfinite(z_wide)
+        keep = converged & (z_side <= p.mirror_z)
+        # the place-clustered z widens on the inner grid (the estimate's mirror image and a metre beyond); the
+        # outer points, as far as the covariance reaches, by the time z as before (with few cells the place z
+        # stays below mirror_z far out, and the outer points then widened to metres for decimetre errors)
+        inner_k = np.arange(keep.size) < int(p.mirror_profile)
+        wide = (converged & (z_wide <= p.mirror_z) & inner_k) | (keep & ~inner_k)
+        z_wide = np.where(inner_k, z_wide, z_side)
         u_est = float((out.position[a] - centre[k]) @ normal[k])
+        u_all = (pts[k] - centre[k]) @ normal[k]
         if planar[k]:
-            keep &= (pts[k] - centre[k]) @ normal[k] * p.side >= min(0.0, u_est * p.side)
-        if keep.any():
-            d = pts[k][keep] - out.position[a]
-            u = (pts[k][keep] - centre[k]) @ normal[k]
-            other = (np.sign(u) != np.sign(u_est)) & (np.abs(u - u_est) > p.mirror_min_sep_m)
-            for dk, zz in zip(d, zk[k][keep], strict=True):
-                floor = np.outer(dk, dk) / max(float(zz), 1.0) ** 2
-                out.covariance[a] = widen_covariance(out.covariance[a], floor)
-            out.widened[a] = True
-            if other.any() and not out.ambiguous[a] and not planar[k]:
-                out.ambiguous[a] = True
-                out.other[a] = pts[k][keep][other][np.argmin(zk[k][keep][other])]
-                out.z[a] = float(np.min(zk[k][keep][other]))
-                out.checked[a] = True
+            conventional = u_all * p.side >= min(0.0, u_est * p.side)
+            keep &= conventional
+            wide &= conventional
+        for dk, zz in zip(pts[k][wide] - out.position[a], z_wide[wide], strict=True):
+            out.covariance[a] = widen_covariance(out.covariance[a], np.outer(dk, dk) / max(float(zz), 1.0) ** 2)
+        out.widened[a] |= bool(wide.any())
+        # the side is decided on the inner grid alone (its span from the fit, not from the covariance)
+        other = keep & (np.arange(keep.size) < int(p.mirror_profile))
+        other &= (np.sign(u_all) != np.sign(u_est)) & (np.abs(u_all - u_est) > p.mirror_min_sep_m)
+        if other.any() and not out.ambiguous[a] and not planar[k]:
+            out.ambiguous[a] = True
+            best = np.flatnonzero(other)[np.argmin(z_side[other])]
+            out.other[a], out.z[a], out.checked[a] = pts[k][best], float(z_side[best]), True
         # step 5: a NaN height; the horizontal ellipse holds the horizontal fit at every height of the span
         if out.ambiguous[a] and converged.any():
             out.covariance[a, :2, :2] += height_envelope(pts[k][converged, :2] - out.position[a, :2])

@@ -14,7 +14,7 @@ Range errors along a path are not independent (an NLOS state that persists while
 building, pose errors that drift): counted as independent, thousands of ranges shrink the covariance to
 millimetres for errors of decimetres; and an error that persists along a stretch pulls the fit towards
 itself, so the residuals show only part of it (the leave-one-out fit does not see it at all).
-`calibrate` then widens it to a third jackknife over route cells of `cov_cell_m` (`cell_covariances`): the
+`calibrate` then widens it to a third jackknife over route cells (`cov_cell_m`, `cell_covariances`): the
 ranges taken in one place on every pass are one cluster, so an error tied to a place (an NLOS zone driven
 through on every lap) is not counted once per lap. The 3 x 3 position block is reported.
 """
@@ -46,6 +46,7 @@ __all__ = [
     "irls_covariance",
     "robust_covariance",
     "cell_labels",
+    "route_cells",
     "cell_covariances",
     "calibrate",
     "prepare_offset",
@@ -72,8 +73,13 @@ class NLSParams(TrajectoryParams):
             4 alone is noisy where the path has many passes (hanyang LOS: 15.6 where 16 gave 1.45).
         cov_cell_m: side [m] of the square route cells of a third jackknife (`cell_covariances`): the ranges
             taken in one cell, on every pass, are one cluster, so an error tied to a place (an NLOS zone the
-            route drives through on every lap) counts once; 0 = off. Chosen on the development campaigns
-            (even seeds 0-38, no drift; cells of 1-24 m): 12 m.
+            route drives through on every lap) counts once. Chosen on the development campaigns (even seeds
+            0-38, no drift; cells of 1-24 m): 12 m. 0 = the scale-free cells of `cov_cells` instead.
+        cov_cells: where `cov_cell_m` is 0, the box of each anchor's tag positions is cut into square cells,
+            `cov_cells` along its longer side (the same partition in any unit or frame; 0 = no cells).
+            Not the default: 3 per side (chosen against 2 on the development campaigns, even seeds 0-32;
+            about 8 m cells on `small`) made hanyang's covariances 2-10 times too wide (18 m cells, NEES/dof
+            0.17 and 0.11; see docs/benchmarks/uncertainty.md, eighth round).
         estimate_offset: fit the pose/range clock offset jointly with the anchors (`prepare_offset`), from
             `time_offset_s` within +-`max_offset_s`: on by default for `nls` and `gp` (off for `ls`). Chosen on
             the simulated `small` family (even seeds; issue #19): where the clocks agree it changed the
@@ -92,6 +98,7 @@ class NLSParams(TrajectoryParams):
     n_clusters: int = 16
     cov_clusters: int = 4
     cov_cell_m: float = 12.0
+    cov_cells: float = 3.0
 
 
 START_PER_ANCHOR = 2000  # ranges per anchor of the start fit of `prepare_offset`
@@ -178,17 +185,21 @@ def covariances_at(pos, rng, mask, x, p: NLSParams, n_clusters: tuple[int, ...])
     return jax.vmap(lambda ps, r, m, xa: covariance_at(ps, r, m, xa, p, n_clusters))(pos, rng, mask, x)
 
 
-def cell_labels(position: np.ndarray, mask: np.ndarray, cell_m: float) -> tuple[np.ndarray, int]:
+def cell_labels(position: np.ndarray, mask: np.ndarray, cell_m, origin=None) -> tuple[np.ndarray, int]:
     """Route cells of the tag positions: the square (x, y) cell of side `cell_m` [m] of each valid entry,
     numbered 0, 1, ... per anchor in order of first visit.
 
     Args:
         position: (A, n, 3) tag positions [m]; mask: (A, n) valid entries.
+        cell_m: the side [m], one for all anchors or (A,) one each. origin: (A, 2) a corner of each anchor's
+            grid [m] (None: the frame's origin).
 
     Returns:
         ((A, n) int labels, padding = the returned count), the largest number of cells of an anchor.
     """
-    cells = np.floor(np.asarray(position)[..., :2] / cell_m).astype(np.int64)
+    side = np.broadcast_to(np.asarray(cell_m, dtype=float), mask.shape[:1])
+    corner = np.zeros((mask.shape[0], 2)) if origin is None else np.asarray(origin, dtype=float)
+    cells = np.floor((np.asarray(position)[..., :2] - corner[:, None, :]) / side[:, None, None]).astype(np.int64)
     mask = np.asarray(mask)
     labels = np.zeros(mask.shape, np.int64)
     counts = []
@@ -200,6 +211,29 @@ def cell_labels(position: np.ndarray, mask: np.ndarray, cell_m: float) -> tuple[
     n_cells = max(max(counts, default=1), 1)
     labels[~mask] = n_cells
     return labels, n_cells
+
+
+def route_cells(groups, p) -> tuple[np.ndarray, int]:
+    """`cell_labels` of prepared `groups` with nls's cells: `p.cov_cell_m` [m] where > 0, else the box of each
+    anchor's tag positions (x, y) cut into `p.cov_cells` cells along its longer side (square cells from the
+    box's corner, the last row and column clipped to the box). Parameters without them (those of `ls` and
+    `gp`) get nls's defaults. Off (both 0): one cell, (A, n) zeros and padding 1."""
+    side_m = float(getattr(p, "cov_cell_m", NLSParams.cov_cell_m))
+    per_side = float(getattr(p, "cov_cells", NLSParams.cov_cells))
+    pos, mask = np.asarray(groups.position), np.asarray(groups.mask)
+    if side_m > 0:
+        return cell_labels(pos, mask, side_m)
+    if per_side <= 0:
+        return np.where(mask, 0, 1).astype(np.int64), 1
+    xy = np.where(mask[..., None], pos[..., :2], np.nan)
+    with np.errstate(all="ignore"):
+        lo, hi = np.nanmin(xy, axis=1), np.nanmax(xy, axis=1)
+    lo, hi = np.nan_to_num(lo), np.nan_to_num(hi)
+    side = np.maximum(np.max(hi - lo, axis=1) / per_side, 1e-9)
+    # the far edge of the box belongs to the last cell (not a cell of its own)
+    inside = np.where(mask[..., None], pos[..., :2], lo[:, None, :])
+    clipped = np.minimum(inside, lo[:, None, :] + (np.ceil(per_side) - 0.5) * side[:, None, None])
+    return cell_labels(np.concatenate([clipped, pos[..., 2:]], axis=-1), mask, side, lo)
 
 
 @eqx.filter_jit
@@ -224,7 +258,7 @@ def _cell_jackknife(pos, rng, mask, x, cells, p: NLSParams, n_cells: int):
 
 def cell_covariances(groups, est, bias, cov, p: NLSParams) -> np.ndarray:
     """nls's covariances `cov` (A, 3, 3) raised, in every direction where smaller, to the cluster jackknife
-    over route cells (`cell_labels` with `p.cov_cell_m`; `robust_covariance`) at the fits `est` (A, 3),
+    over route cells (`route_cells`; `robust_covariance`) at the fits `est` (A, 3),
     `bias` (A,). Anchors without a finite fit keep theirs.
 
     Errors tied to a place repeat each time the route passes it: the stretch jackknifes in time see laps as
@@ -234,9 +268,9 @@ def cell_covariances(groups, est, bias, cov, p: NLSParams) -> np.ndarray:
     2.6; cells of 4 m changed little (errors in the simulated NLOS zones persist over more than a cell),
     24 m was worse at the worst (5.2)."""
     cov = np.array(cov, dtype=float)
-    if p.cov_cell_m <= 0:
+    labels, n_cells = route_cells(groups, p)
+    if n_cells <= 1:
         return cov
-    labels, n_cells = cell_labels(groups.position, groups.mask, p.cov_cell_m)
     x = np.concatenate([np.nan_to_num(np.asarray(est, float)), np.nan_to_num(np.asarray(bias, float))[:, None]], 1)
     jack = np.asarray(_cell_jackknife(groups.position, groups.range, groups.mask, jnp.asarray(x), labels, p, n_cells))
     ok = np.isfinite(est).all(axis=1) & np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(jack).all(axis=(1, 2))
@@ -338,7 +372,13 @@ def calibrate(dataset, params=None, config=None) -> Result:
     if p.loss not in ("cauchy", "huber", "l2"):
         raise JaxcalError(f"parameter loss: expected cauchy, huber or l2, got {p.loss!r}")
     if not p.cov_cell_m >= 0:
-        raise JaxcalError(f"parameter cov_cell_m: must be a number >= 0 [m] (0 = off), got {p.cov_cell_m}")
+        raise JaxcalError(
+            f"parameter cov_cell_m: must be a number >= 0 [m] (0 = cells from cov_cells), got {p.cov_cell_m}"
+        )
+    if not 0 <= p.cov_cells < np.inf:
+        raise JaxcalError(
+            f"parameter cov_cells: must be a number >= 0 (cells along the route's box; 0 = none), got {p.cov_cells}"
+        )
     groups, info = prepare_offset(dataset, p)
 
     (est, cov, bias, codes), codes, steps = solve_all_checked(groups, p)
