@@ -198,11 +198,11 @@ def estimate(
         float(min_scale_m),
         int(n_clusters),
     )
-    tau, var_model, var_sand, info, total, sens = (np.asarray(x, dtype=float) for x in out)
-    tau = float(tau)
+    tau_a, var_model, var_sand, info, total, sens_a = (np.asarray(x, dtype=float) for x in out)
+    tau = float(tau_a)
     sd = float(np.sqrt(max(var_model, var_sand))) if info > 0 else float("inf")
     rel = float(info / total) if total > 0 else 0.0
-    sens = np.where(np.isfinite(sens), sens, 0.0)
+    sens = np.where(np.isfinite(sens_a), sens_a, 0.0)
     reason = ""
     if not (rel >= min_relative_info and np.isfinite(sd)):
         reason = (
