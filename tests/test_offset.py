@@ -12,6 +12,7 @@ from jaxcal.data import TrajectoryDataset
 from jaxcal.precision import in_float64
 from jaxcal.trajectory import common, nls
 from test_nls import lissajous
+from trajectory_campaigns import one_anchor_dataset
 
 prepare = in_float64(nls.prepare_offset)
 
@@ -30,23 +31,14 @@ def spiral(rate_mps: float, seed: int) -> TrajectoryDataset:
     """A tag on an Archimedean spiral around one anchor in its plane: the range grows at a constant rate."""
     gen = np.random.default_rng(seed)
     t = np.arange(0.0, 60.0, 0.05)
-    rho, phi = 5.0 + rate_mps * t, 0.8 * t
-    pos = np.stack([rho * np.cos(phi), rho * np.sin(phi), np.zeros_like(t)], 1)
+
+    def body(tt):
+        rho, phi = 5.0 + rate_mps * tt, 0.8 * tt
+        return np.stack([rho * np.cos(phi), rho * np.sin(phi), np.zeros_like(tt)], 1), np.zeros_like(tt)
+
     rt = np.arange(1.0, 59.0, 0.02)
-    r = np.interp(rt, t, rho) + 0.02 * gen.normal(size=rt.size)
-    return TrajectoryDataset(
-        name="spiral",
-        anchor_ids=["a0"],
-        tag_ids=["t"],
-        lever_arm=[[0.0, 0.0, 0.0]],
-        pose_time=t,
-        pose_position=pos,
-        range_time=rt,
-        range_anchor=np.zeros(rt.size, int),
-        range_tag=np.zeros(rt.size, int),
-        range=r,
-        anchor_truth=np.zeros((1, 3)),
-    )
+    r = np.interp(rt, t, 5.0 + rate_mps * t) + 0.02 * gen.normal(size=rt.size)
+    return one_anchor_dataset("spiral", body, np.zeros((1, 3)), t, rt, r)
 
 
 def test_constant_range_rate_gives_no_offset(rng, caplog):
