@@ -105,37 +105,30 @@ def aligned_rmse(est: np.ndarray, truth: np.ndarray) -> float:
     return float(np.sqrt(np.mean(e * e)))
 
 
-def import_real(tmp: Path) -> list[tuple[str, object]]:
-    """The dwm1001-autocal scenarios, via `jaxcal import dwm1001-autocal` (skipped when absent)."""
+def import_dwm(tmp: Path, name: str, folder: str, cfg: str):
+    """One dwm1001-autocal scenario via `jaxcal import dwm1001-autocal` into `tmp`; None (said) when it fails."""
     from jaxcal.io import hdf5
 
-    out = []
+    dst = tmp / f"{name}.h5"
+    cmd = [sys.executable, "-m", "jaxcal.cli", "import", "dwm1001-autocal", str(SHARED / folder)]
+    cmd += [str(SHARED / "nodes_cfg" / f"{cfg}.yaml"), "-o", str(dst), "--name", name]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        print(f"# import {name} failed: {proc.stderr.strip()}", file=sys.stderr)
+        return None
+    return hdf5.read(dst)
+
+
+def import_real(tmp: Path) -> list[tuple[str, object]]:
+    """The dwm1001-autocal scenarios, via `jaxcal import dwm1001-autocal` (skipped when absent)."""
     if not SHARED.exists():
         print(f"# {SHARED} not found: real scenarios skipped", file=sys.stderr)
-        return out
+        return []
+    out = []
     for name, (folder, cfg) in DWM_SCENARIOS.items():
-        dst = tmp / f"{name}.h5"
-        proc = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "jaxcal.cli",
-                "import",
-                "dwm1001-autocal",
-                str(SHARED / folder),
-                str(SHARED / "nodes_cfg" / f"{cfg}.yaml"),
-                "-o",
-                str(dst),
-                "--name",
-                name,
-            ],
-            capture_output=True,
-            text=True,
-        )
-        if proc.returncode != 0:
-            print(f"# import {name} failed: {proc.stderr.strip()}", file=sys.stderr)
-            continue
-        out.append((name, hdf5.read(dst)))
+        data = import_dwm(tmp, name, folder, cfg)
+        if data is not None:
+            out.append((name, data))
     return out
 
 

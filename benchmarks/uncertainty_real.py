@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import subprocess
 import sys
 import tempfile
 import time
@@ -27,7 +26,9 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared" / "datasets" / "dwm1001-autocal"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from peers import SHARED, import_dwm  # noqa: E402
+
 DWM = {  # name -> (scenario folder, nodes_cfg stem)
     "campus_sport": ("campus_sport/rich_samples", "campus_sport"),
     "srvlab_ground": ("srvlab_ground", "srvlab_ground"),
@@ -46,28 +47,9 @@ def datasets(tmp: Path, names: list[str]):
         if not SHARED.exists():
             print(f"# {SHARED} not found: {name} skipped", file=sys.stderr)
             continue
-        dst = tmp / f"{name}.h5"
-        proc = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "jaxcal.cli",
-                "import",
-                "dwm1001-autocal",
-                str(SHARED / folder),
-                str(SHARED / "nodes_cfg" / f"{cfg}.yaml"),
-                "-o",
-                str(dst),
-                "--name",
-                name,
-            ],
-            capture_output=True,
-            text=True,
-        )
-        if proc.returncode != 0:
-            print(f"# import {name} failed: {proc.stderr.strip()}", file=sys.stderr)
-            continue
-        yield name, hdf5.read(dst)
+        data = import_dwm(tmp, name, folder, cfg)
+        if data is not None:
+            yield name, data
 
 
 def main(argv=None) -> int:
