@@ -42,6 +42,7 @@ import numpy as np
 
 from jaxcal.data import MeshDataset, Result, TrajectoryDataset
 from jaxcal.errors import JaxcalError
+from jaxcal.io.jsonsafe import json_safe
 
 __all__ = [
     "PosteriorSpec",
@@ -295,18 +296,6 @@ def _table(head: Sequence[str], rows: Sequence[Sequence[str]], cls: str = "") ->
     h = "".join(f"<th>{html.escape(c)}</th>" for c in head)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
     return f'<table class="{cls}"><thead><tr>{h}</tr></thead><tbody>{body}</tbody></table>'
-
-
-def _clean(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if hasattr(x, "tolist"):
-        return _clean(x.tolist())
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 class _Page:
@@ -803,7 +792,7 @@ def write_report(
     )
     from jaxcal.io.atomic import atomic_write_text
 
-    atomic_write_text(out / "report.json", json.dumps(_clean(numbers), indent=1, allow_nan=False))
+    atomic_write_text(out / "report.json", json.dumps(json_safe(numbers), indent=1, allow_nan=False))
     index = out / "index.html"
     atomic_write_text(index, doc)
     return index

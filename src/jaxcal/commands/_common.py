@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import errno
 import json
-import math
 import os
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any
 
 from jaxcal.errors import JaxcalError
+from jaxcal.io.jsonsafe import json_safe
 
 
 def load(path: str, kinds: tuple[str, ...] = ("mesh", "trajectory", "result")):
@@ -36,22 +35,9 @@ def kind_of(obj) -> str:
     raise TypeError(type(obj).__name__)
 
 
-def _clean(x: Any) -> Any:
-    """JSON-safe: NaN/inf -> None, NumPy scalars and arrays -> Python."""
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if hasattr(x, "tolist"):
-        return _clean(x.tolist())
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
-
-
 def print_json(obj: dict) -> None:
     """Exactly one JSON object on stdout."""
-    sys.stdout.write(json.dumps(_clean(obj), allow_nan=False) + "\n")
+    sys.stdout.write(json.dumps(json_safe(obj), allow_nan=False) + "\n")
     sys.stdout.flush()
 
 

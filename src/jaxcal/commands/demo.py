@@ -169,9 +169,9 @@ def run(args) -> int:
 def _json(obj) -> str:
     import json
 
-    from jaxcal.commands._common import _clean
+    from jaxcal.io.jsonsafe import json_safe
 
-    return json.dumps(_clean(obj), indent=1, allow_nan=False)
+    return json.dumps(json_safe(obj), indent=1, allow_nan=False)
 
 
 def _format_runs(runs: list[dict], node_ids) -> str:

@@ -151,9 +151,10 @@ def run(args) -> int:
     import os
     import time
 
-    from jaxcal.commands._common import _clean, check_output_path, load, print_json, resolve_config
+    from jaxcal.commands._common import check_output_path, load, print_json, resolve_config
     from jaxcal.errors import JaxcalError
     from jaxcal.io.atomic import atomic_write_text
+    from jaxcal.io.jsonsafe import json_safe
     from jaxcal.params import parse_set
     from jaxcal.progress import progress_bar
 
@@ -221,7 +222,7 @@ def run(args) -> int:
             "elapsed_s": time.perf_counter() - t0,
         },
     }
-    atomic_write_text(out.path, json.dumps(_clean(doc), indent=2))
+    atomic_write_text(out.path, json.dumps(json_safe(doc), indent=2))
     if args.json:
         print_json({**doc, "overwrote": out.existed})
     elif not args.quiet:
