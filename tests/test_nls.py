@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+import scipy.linalg
 
 from conftest import assert_one_line_error, run_cli
 from jaxcal.data import TrajectoryDataset
@@ -222,3 +223,41 @@ def test_trajectory_params_refuse_values_that_mean_nothing(bad):
     with pytest.raises(JaxcalError, match=f"parameter {next(iter(bad))}: must be"):
         nls.NLSParams(**bad)
     nls.NLSParams(mirror_z=0.0, mirror_profile=0)  # the documented "off" values stay valid
+
+
+def test_a_stretch_that_holds_a_direction_has_its_leverage_capped_not_an_exploding_refit(rng):
+    # stretch 0 alone holds (almost) all the information on parameter 0: leaving it out, that parameter is
+    # all but undetermined and the explicit refit moves it by ~1 / (1 - leverage)
+    n, p, g = 48, 3, 4
+    jac = rng.normal(size=(n, p))
+    cl = (np.arange(n) * g) // n
+    jac[cl != 0, 0] *= 1e-4
+    res = rng.normal(size=n) * 0.05 + np.repeat(rng.normal(size=g), n // g) * 0.3
+    res -= jac @ np.linalg.lstsq(jac, res, rcond=None)[0]  # residuals at the least-squares fit
+    mask = np.ones(n, bool)
+    out = np.asarray(nls.robust_covariance(np.zeros((p, p)), jac, res, mask, g))
+    # slow references: explicit leave-one-stretch-out refits of the linear problem (exact for a linear model)
+    y = jac @ np.ones(p) - res
+    full = np.linalg.lstsq(jac, y, rcond=None)[0]
+    refit = np.stack([np.linalg.lstsq(jac[cl != c], y[cl != c], rcond=None)[0] - full for c in range(g)])
+    # ... and the capped step written out: A_g's generalized eigenvalues against A clipped at MAX_LEVERAGE
+    a = jac.T @ jac
+    capped, lev = [], []
+    for c in range(g):
+        jg = jac[cl == c]
+        mu, q = scipy.linalg.eigh(jg.T @ jg, a)  # q^T a q = I, so A_g = a q diag(mu) q^T a
+        lev.append(mu.max())
+        ag = a @ q @ np.diag(np.minimum(mu, nls.MAX_LEVERAGE)) @ q.T @ a
+        capped.append(np.linalg.solve(a - ag, jg.T @ res[cl == c]))
+    assert lev[0] > 0.999 and max(lev[1:]) < nls.MAX_LEVERAGE  # only stretch 0 is capped
+    ref = (g - 1) / g * np.stack(capped).T @ np.stack(capped)
+    np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-12)
+    # the stretches under the cap are the explicit refits, unchanged
+    np.testing.assert_allclose(np.stack(capped)[1:], refit[1:], rtol=1e-6, atol=1e-12)
+    # leaving out stretch 0 explodes in the refit, not in the capped jackknife: in the norm of A, its step is
+    # at most 1 / (1 - 0.99) = 100 times its plain step A^-1 s_0
+    plain = np.linalg.solve(a, jac[cl == 0].T @ res[cl == 0])
+    a_norm = lambda x: float(np.sqrt(x @ a @ x))  # noqa: E731
+    assert a_norm(capped[0]) <= 100 * a_norm(plain) * (1 + 1e-9)
+    assert a_norm(refit[0]) > 5 * a_norm(capped[0])
+    assert np.isfinite(out).all() and np.linalg.eigvalsh(out).min() > -1e-12

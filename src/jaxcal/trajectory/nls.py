@@ -101,6 +101,7 @@ class NLSParams(TrajectoryParams):
     cov_cells: float = 3.0
 
 
+MAX_LEVERAGE = 0.99  # the largest share of a direction's information one left-out stretch may hold
 START_PER_ANCHOR = 2000  # ranges per anchor of the start fit of `prepare_offset`
 
 
@@ -311,7 +312,11 @@ def robust_covariance(cov_model, jac_w, res_w, mask, n_clusters: int, cluster=No
     products. Unlike the plain sandwich A^-1 (sum_g s_g s_g^T) A^-1 it accounts for what the fit absorbs:
     an error that persists along a stretch pulls the estimate towards itself, and the residuals then show
     only what is left (a stretch that alone holds most of the information on a direction shows almost
-    nothing). A stretch without which a direction is not determined gives that direction a huge variance.
+    nothing). A stretch's leverage on a direction (its share of A's information there: the generalized
+    eigenvalues of A_g against A) is capped at `MAX_LEVERAGE` (`_leave_one_out_steps`): a stretch without
+    which a direction is not determined gives it a large variance (its step at most 1 / (1 - 0.99) = 100
+    times A^-1 s_g in A's norm), not a near-infinite one from one nearly singular solve, which made a single
+    stretch decide the whole ellipsoid (docs/benchmarks/uncertainty.md, ninth round, trajectory).
 
     Args:
         cov_model: (P, P) model covariance s^2 (J^T W J)^-1.
@@ -335,15 +340,38 @@ def robust_covariance(cov_model, jac_w, res_w, mask, n_clusters: int, cluster=No
     jm = jnp.where(mask[:, None], jac_w, 0.0)
     s = jax.ops.segment_sum(jm * jnp.where(mask, res_w, 0.0)[:, None], cluster, n_clusters + 1)[:n_clusters]
     a_g = jax.ops.segment_sum(jm[:, :, None] * jm[:, None, :], cluster, n_clusters + 1)[:n_clusters]
-    a = jm.T @ jm
-    ridge = 1e-12 * jnp.trace(a) * jnp.eye(a.shape[0])
-    step = jax.vmap(lambda ag, sg: jnp.linalg.solve(a - ag + ridge, sg))(a_g, s)  # (G, P) leave-one-out steps
+    step = _leave_one_out_steps(jm.T @ jm, a_g, s)  # (G, P)
     jack = (n_used - 1.0) / n_used * step.T @ step
     jack = jnp.where(jnp.isfinite(jack).all(), jack, 0.0)
     d = 0.5 * (jack + jack.T) - 0.5 * (cov_model + cov_model.T)
     lam, vec = jnp.linalg.eigh(d)
     out = 0.5 * (cov_model + cov_model.T) + (vec * jnp.maximum(lam, 0.0)) @ vec.T
     return 0.5 * (out + out.T)
+
+
+def _leave_one_out_steps(a, a_g, s, max_leverage: float = MAX_LEVERAGE):
+    """The leave-one-stretch-out Gauss-Newton steps (A - A_g')^-1 s_g (G, P), with each stretch's leverage
+    capped: A_g' is A_g with its generalized eigenvalues against A (the share of a direction's information
+    that the stretch holds, in [0, 1]) clipped to `max_leverage`.
+
+    Without the cap a stretch that holds almost all of one direction's information (leverage -> 1) gives
+    that direction a near-infinite step, and the whole covariance follows from one nearly singular solve.
+    Whitening by A (W^T A W = I) turns the generalized problem into an ordinary one: M_g = W^T A_g W =
+    V diag(mu) V^T, and (A - A_g')^-1 = W V diag(1 / (1 - min(mu, cap))) V^T W^T.
+
+    Args:
+        a: (P, P) J^T W J. a_g: (G, P, P) its parts per stretch. s: (G, P) the stretches' scores.
+    """
+    lam, u = jnp.linalg.eigh(0.5 * (a + a.T))
+    lam = jnp.maximum(lam, 1e-12 * jnp.maximum(jnp.sum(jnp.abs(lam)), jnp.finfo(lam.dtype).tiny))
+    w = u / jnp.sqrt(lam)  # W: W^T A W = I
+
+    def one(ag, sg):
+        mu, v = jnp.linalg.eigh(w.T @ (0.5 * (ag + ag.T)) @ w)
+        gain = 1.0 / (1.0 - jnp.clip(mu, 0.0, max_leverage))
+        return w @ (v @ (gain * (v.T @ (w.T @ sg))))
+
+    return jax.vmap(one)(a_g, s)
 
 
 @eqx.filter_jit
