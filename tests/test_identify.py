@@ -51,9 +51,18 @@ def test_single_and_two_neighbours_are_not_fixed_with_the_reason():
 
 
 def test_frame_nodes_follow_their_own_mirror_rule():
-    # a2 ranging a0 and a1 only is fixed: its mirror is the frame's y > 0 choice
+    # a2 ranging a0 and a1 only: its y > 0 says nothing about the side the others lie on (the frame has a
+    # mirror image); the frame triangle itself is fixed by its three ranges
     a = drop(complete(6), *[(2, k) for k in range(3, 6)])
-    assert I.identify(a, (0, 1, 2)).fixed.all()
+    ident = I.identify(a, (0, 1, 2), ids=IDS[:6])
+    assert not ident.frame_fixed and ident.fixed.tolist() == [True] * 3 + [False] * 3
+    assert ident.mirror == "n2 ranges only n0, n1"
+    assert "frame (n0/n1/n2) has a mirror image (n2 ranges only n0, n1)" in I.describe(ident, IDS[:6])
+    # a1 ranging a0 and one more node: reflected through their line, the frame turns
+    ident = I.identify(drop(complete(6), *[(1, k) for k in range(3, 6)]), (0, 1, 2), ids=IDS[:6])
+    assert ident.mirror == "n1 ranges only n0, n2" and ident.fixed.tolist() == [True] * 3 + [False] * 3
+    # the frame triangle alone is rigid as it is
+    assert I.identify(complete(3), (0, 1, 2)).frame_fixed
     # a1 ranging a0 only: its x is fixed, but the rest may turn about a0, so the frame is not determined
     a = drop(complete(6), *[(1, k) for k in range(2, 6)])
     ident = I.identify(a, (0, 1, 2))
@@ -280,3 +289,44 @@ def test_apply_says_when_fixed_nodes_are_left_unplaced(rng, caplog):
         I.apply(dataclasses.replace(res, position=pos), ident)
     lines = [r.getMessage() for r in caplog.records]
     assert len(lines) == 1 and "1 of the 6 nodes the ranges fix left unplaced by the method (n3)" in lines[0]
+
+
+def _mesh_of_graph(rng, adj, k=40, sigma=0.1):
+    n = adj.shape[0]
+    pos, d = random_layout(rng, n, 20.0, min_sep=3.0)
+    r = d[None] + sigma * rng.standard_normal((k, n, n))
+    r[:, ~adj] = np.nan
+    return mesh_of(r, pos), pos
+
+
+def test_filter_frame_leaves_a_frame_that_reaches_fewer_fixed_nodes(rng):
+    """Every frame pair measured from the first epoch, but each other node ranges only two frame nodes:
+    a filter started in (n0, n1, n2) localises nothing else, one started in (n3, n4, n5) everything."""
+    a = complete(7)
+    a = drop(a, (3, 2), (4, 0), (5, 1), (6, 2))
+    ds, _ = _mesh_of_graph(rng, a, k=5)
+    assert I.identify_ranges(ds.range, (0, 1, 2)).frame_fixed
+    assert I.frame_reach(ds.range, (0, 1, 2)) == (7, 3)
+    tri = I.filter_frame(ds.range, (0, 1, 2))
+    assert tri != (0, 1, 2) and I.frame_reach(ds.range, tri) == (7, 7)
+
+
+def test_pgp_reports_in_its_own_frame_when_the_configured_one_has_a_mirror_image(rng, caplog):
+    """n2 (a2) ranges only n0 and n1: in the frame (n0, n1, n2) every other node has two placements. pgp
+    runs in a triple without n2, says in one line that the result is in that frame, and places every
+    node there but n2 (its own mirror image) close to the truth. 6 nodes, 1 m cells, 20 epochs (cheap)."""
+    from jaxcal.mesh import pgp
+    from jaxcal.metrics import truth_in_result_frame
+
+    a = drop(complete(6), (2, 3), (2, 4), (2, 5))
+    ds, _ = _mesh_of_graph(rng, a, k=20)
+    with caplog.at_level(logging.WARNING, logger="jaxcal"):  # direct likelihood: one compiled path (~4 s)
+        res = pgp.calibrate(ds, {"cell_m": 1.0, "grid_mode": "global", "likelihood": "direct"})
+    tri = res.frame_anchors()
+    assert tri != (0, 1, 2) and 2 not in tri
+    lines = [r.getMessage() for r in caplog.records if "mirror image" in r.getMessage()]
+    assert len(lines) == 1 and "frame n0/n1/n2 has a mirror image (n2 ranges only n0, n1)" in lines[0]
+    placed = np.isfinite(res.position).all(axis=1)
+    assert placed.tolist() == [True, True, False, True, True, True]
+    truth = truth_in_result_frame(res, ds.truth)
+    assert np.linalg.norm(res.position[placed] - truth[placed], axis=1).max() < 1.5

@@ -11,14 +11,17 @@ of CONTRACT 1.1 (a0 at the origin, a1 on +x, a2 at y > 0), for generic positions
    probability 1 (Gluck 1975; Asimow & Roth 1978), whatever the true layout.
 3. **No mirror image**: a rigid node with only d fixed neighbours (d = 2 in 2-D) can be reflected
    through the line (plane) of its neighbours without changing one range, so it is not fixed. The
-   frame nodes follow their own rule: a1 needs a range to a0 or two fixed neighbours (a circle meets
-   the x axis twice), a2 a range to both a0 and a1 (whose mirror is the frame's y > 0 choice) or
-   three fixed neighbours. Such nodes are peeled off and the test repeats on what is left (a node
-   that relied on a peeled one may lose its rigidity); this is the generic necessary condition for
-   global rigidity (Hendrickson 1992), conservative where the exact test (3-connectivity plus
-   redundant rigidity, Jackson & Jordan 2005) would keep a node.
-4. **Frame determined**: a1 and a2 are fixed themselves. Otherwise only a0 (and a1 when its x is
-   fixed) can be placed: without a2 nothing tells the frame's mirror image.
+   frame nodes first follow their own rule: a1 needs a range to a0 or two fixed neighbours, a2 a
+   range to both a0 and a1 or three fixed neighbours. Such nodes are peeled off and the test repeats
+   on what is left (a node that relied on a peeled one may lose its rigidity); this is the generic
+   necessary condition for global rigidity (Hendrickson 1992), conservative where the exact test
+   (3-connectivity plus redundant rigidity, Jackson & Jordan 2005) would keep a node.
+4. **Frame determined**: a1 and a2 are fixed themselves, and, when any other node is fixed, each of
+   a0, a1, a2 has more than d fixed neighbours. A frame node with only d (a2 ranging a0 and a1
+   only, a1 ranging a0 and one more) has a mirror image: reflecting it through its neighbours'
+   line keeps every range, and the frame it spans flips against the rest, so every other node has
+   two placements in the frame ("frame has a mirror image"). Otherwise only a0, a1 (its range to
+   a0) and a2 (its ranges to both) can be placed.
 
 `identify` is pure NumPy/SciPy on an (N, N) graph (no ranges needed beyond which pairs were measured);
 `apply` turns its answer into NaN rows of a `Result` (CONTRACT: NaN row = no estimate) and one warning
@@ -51,6 +54,7 @@ __all__ = [
     "undetermined_frame_result",
     "with_auto_config",
     "filter_frame",
+    "frame_reach",
     "trilateration_reach",
     "first_complete_epoch",
     "FRAME_UNDETERMINED",
@@ -68,6 +72,7 @@ class Identifiability:
         frame_fixed: a1 and a2 are fixed (the frame is determined).
         missing_frame_links: frame pairs (i, j), i < j, never measured.
         never_ranged: every pair (i, j), i < j, never measured.
+        mirror: why the frame has a mirror image ("n2 ranges only n0, n1"; "" when it has none).
     """
 
     anchors: tuple[int, int, int]
@@ -77,6 +82,7 @@ class Identifiability:
     frame_fixed: bool
     missing_frame_links: tuple[tuple[int, int], ...]
     never_ranged: tuple[tuple[int, int], ...]
+    mirror: str = ""
 
     @property
     def n_fixed(self) -> int:
@@ -199,6 +205,8 @@ def identify(measured: np.ndarray, anchors, dim: int = 2, ids=None, seed: int = 
             break
         alive[peel] = False
     frame_fixed = bool(fixed[a1] and fixed[a2])
+    mirror = _frame_mirror(adj, fixed, anchors, dim, ids) if frame_fixed else ""
+    frame_fixed = frame_fixed and not mirror
     for i in range(n):
         if not fixed[i] and not reason[i]:
             nbrs = np.flatnonzero(adj[i])
@@ -208,6 +216,9 @@ def identify(measured: np.ndarray, anchors, dim: int = 2, ids=None, seed: int = 
                 reason[i] = f"{ids[i]} is not rigidly connected to the frame (ranges {_names(nbrs, ids)})"
     if not frame_fixed:
         keep = {a0} | ({a1} if fixed[a1] else set())
+        if mirror:  # the frame triangle keeps its shape in any reflection: its measured sides fix it
+            keep = {a0} | ({a1} if adj[a0, a1] else set())
+            keep |= {a2} if adj[a0, a1] and adj[a0, a2] and adj[a1, a2] else set()
         for i in range(n):
             if i not in keep and i not in (a1, a2):
                 reason[i] = FRAME_UNDETERMINED
@@ -222,7 +233,22 @@ def identify(measured: np.ndarray, anchors, dim: int = 2, ids=None, seed: int = 
         frame_fixed=frame_fixed,
         missing_frame_links=missing,
         never_ranged=tuple(pairs),
+        mirror=mirror,
     )
+
+
+def _frame_mirror(adj: np.ndarray, fixed: np.ndarray, anchors, dim: int, ids) -> str:
+    """Why the frame has a mirror image: the first frame node with only `dim` fixed neighbours while a
+    node outside the frame is fixed ("" when none; a lone frame triangle is rigid as it is)."""
+    others = fixed.copy()
+    others[list(anchors)] = False
+    if not others.any():
+        return ""
+    for f in anchors:
+        nb = np.flatnonzero(adj[f] & fixed)
+        if nb.size <= dim:
+            return f"{ids[f]} ranges only {_names(nb, ids)}"
+    return ""
 
 
 def identify_ranges(range_m: np.ndarray, anchors, dim: int = 2, ids=None, min_count: int = 1) -> Identifiability:
@@ -245,8 +271,9 @@ def _triangle_quality(d: np.ndarray, tri) -> float:
 def trilateration_reach(adj: np.ndarray, tri, min_refs: int) -> np.ndarray:
     """(N,) bool: the nodes a grid filter started from the frame `tri` can localise, in the order it does
     (a node localises once it has ranged `min_refs` localised nodes; the three frame nodes from the
-    frame rule). Rigidity (`identify`) can fix more: a node reached only through a node it ranges
-    alone is rigid in the network but never heard by the filter from enough localised neighbours.
+    frame rule: a1 from a range to a0, a2 from ranges to a0 and a1). Rigidity (`identify`) can fix
+    more: a node reached only through a node it ranges alone is rigid in the network but never heard
+    by the filter from enough localised neighbours.
 
     Args:
         adj: (N, N) bool measured pairs (`measured_pairs`). tri: the frame (a0, a1, a2).
@@ -254,7 +281,10 @@ def trilateration_reach(adj: np.ndarray, tri, min_refs: int) -> np.ndarray:
     """
     a = np.asarray(adj, dtype=bool)
     placed = np.zeros(a.shape[0], dtype=bool)
-    placed[list(tri)] = True
+    b0, b1, b2 = tri
+    placed[b0] = True
+    placed[b1] = a[b0, b1]  # eq. 5: a1 from its range to a0 only
+    placed[b2] = placed[b1] and a[b2, b0] and a[b2, b1]  # eq. 6: a2 from a0 and a1
     while True:
         new = ~placed & (a[:, placed].sum(axis=1) >= min_refs)
         if not new.any():
@@ -279,7 +309,7 @@ def choose_frame(
         max_candidates: how many of the best-connected nodes to combine.
         exclude: triples (as given, any order) not to return.
         min_refs: > 0: for a grid filter: rank first by whether every node of `need` is in the triple's
-            `trilateration_reach`, then by the reach's size, before the nodes fixed.
+            `trilateration_reach`, then by the fixed nodes it reaches, before the nodes fixed.
         need: nodes a filter run in the triple's frame must localise (the configuration's frame nodes,
             through which its track is moved back).
 
@@ -322,7 +352,7 @@ def choose_frame(
         score: tuple = (ident.n_fixed, min(share[i, j], share[i, l_], share[j, l_]) * q * deg[list(tri)].mean())
         if min_refs > 0:
             reach = trilateration_reach(adj, tri, min_refs)
-            score = (bool(reach[list(need)].all()), int(reach.sum()), *score)
+            score = (bool(reach[list(need)].all()), int((reach & ident.fixed).sum()), *score)
         if best is None or score > best[0]:
             best = (score, (a0, a1, a2), ident)
     return None if best is None else (best[1], best[2])
@@ -340,7 +370,9 @@ def describe(ident: Identifiability, ids, method: str = "", suggestion=None) -> 
     parts = []
     a = ident.anchors
     frame = "/".join(ids[v] for v in a)
-    if not ident.frame_fixed:
+    if ident.mirror:
+        parts.append(f"frame ({frame}) has a mirror image ({ident.mirror}): the other nodes have two placements")
+    elif not ident.frame_fixed:
         links = ", ".join(f"{ids[i]}-{ids[j]}" for i, j in ident.missing_frame_links)
         parts.append(f"frame ({frame}) not determined by the ranges" + (f" (never ranged: {links})" if links else ""))
     why = [ident.reason[i] for i in bad if ident.reason[i] != FRAME_UNDETERMINED]
@@ -423,12 +455,13 @@ def filter_frame(range_m: np.ndarray, anchors, early: float = 0.05, min_refs: in
     """The frame a grid filter (pgp, parametric) should run in, before its track is moved to `anchors`.
 
     The configuration's own frame when its three pairs (a0-a1, a0-a2, a1-a2) have all been measured
-    within the first `early` share of the epochs: the paper's rule (a1 from its range to a0, eq. 5;
-    a2 from a0 and a1, eq. 6) then holds. Otherwise (a frame pair never or only late measured) the
-    best-connected, best-conditioned triple of `choose_frame`, whose own pairs are measured and from which
-    the filter reaches the configuration's frame nodes and the most nodes (`trilateration_reach` with
-    `min_refs`: a triple through a node that ranges only the other two localises nothing else); the caller
-    moves every epoch into the configuration's frame through the estimates of a0, a1, a2 there.
+    within the first `early` share of the epochs (the paper's rule: a1 from its range to a0, eq. 5; a2
+    from a0 and a1, eq. 6) and the filter reaches from it (`trilateration_reach` with `min_refs`) as many
+    of the nodes the ranges fix as from any other triple. Otherwise (a frame pair never or only late
+    measured; a frame node that no other node hears; a frame with a mirror image) the triple of
+    `choose_frame` from which the filter reaches the configuration's frame nodes (when that frame is
+    determined: the caller moves every epoch into it through the estimates of a0, a1, a2 there) and the
+    most fixed nodes.
 
     Args:
         range_m: (K, N, N) ranges [m]. anchors: the configuration (a0, a1, a2).
@@ -440,20 +473,32 @@ def filter_frame(range_m: np.ndarray, anchors, early: float = 0.05, min_refs: in
     """
     anchors = tuple(int(a) for a in anchors)
     k = np.asarray(range_m).shape[0]
-    first = first_complete_epoch(range_m, anchors)
-    if first is not None and first <= max(early * k, 1):
-        return anchors
-    best = choose_frame(range_m, min_refs=min_refs, need=anchors)
+    own = identify_ranges(range_m, anchors)
+    best = choose_frame(range_m, min_refs=min_refs, need=anchors if own.frame_fixed else ())
     if best is None:
         return anchors
     tri, ident = best
-    own = identify_ranges(range_m, anchors)
+    adj = measured_pairs(range_m)
+    reach_own = int((trilateration_reach(adj, anchors, min_refs) & own.fixed).sum())
+    reach_tri = int((trilateration_reach(adj, tri, min_refs) & ident.fixed).sum())
+    if reach_tri > reach_own:
+        return tri
+    first = first_complete_epoch(range_m, anchors)
+    if first is not None and first <= max(early * k, 1):
+        return anchors
     if not own.frame_fixed:  # no frame to move the track into: the configuration's own, masked later
         return anchors
     tri_first = first_complete_epoch(range_m, tri)
     if first is not None and tri_first is not None and first <= tri_first:
         return anchors
     return tri
+
+
+def frame_reach(range_m: np.ndarray, tri, min_refs: int = 3) -> tuple[int, int]:
+    """(nodes the ranges fix in the frame `tri`, of them those a grid filter started there reaches)."""
+    ident = identify_ranges(range_m, tri)
+    reach = trilateration_reach(measured_pairs(range_m), tri, min_refs)
+    return ident.n_fixed, int((reach & ident.fixed).sum())
 
 
 def mask_result(result, range_m: np.ndarray, warn: bool = True):

@@ -86,7 +86,7 @@ def run_pgp(
     if dataset.n_epochs == 0:
         raise JaxcalError(f"{dataset.name}: no epochs to calibrate from")
     a = dataset.config(config)
-    b = a if params.frame == "direct" else _filter_anchors(dataset, a, params.frame, params.min_refs)
+    b = a if params.frame == "direct" else _filter_anchors(dataset, a, params.frame, params.min_refs, mode)
     validate_params(params)
     local = None
     if params.grid_mode != "global":
@@ -109,6 +109,7 @@ def run_pgp(
     cov = np.asarray(grid_cov, dtype=np.float64)[inv]
     cov = cov + cell_variance(cfg.grid.cell_m, n, b)
     cov[~loc_any] = np.nan
+    a = _report_frame(dataset, a, b, final, mode)
     if b != a:  # proxy frame: every epoch moved into the configuration's frame by its a0, a1, a2
         final, cov, est = _to_config_frame(final, cov, est, a)
         loc_any = np.isfinite(est).all(axis=2).any(axis=0)
@@ -267,6 +268,7 @@ def _run_local(dataset: MeshDataset, params: PGPParams, a, b, local, progress, p
     final = est[-1]
     cov = np.asarray(cov, dtype=np.float64)[inv] + cell_variance(lattice.cell_m, n, b)
     cov[~loc_any] = np.nan
+    a = _report_frame(dataset, a, b, final, "pgp")
     if b != a:
         final, cov, est = _to_config_frame(final, cov, est, a)
         loc_any = np.isfinite(est).all(axis=2).any(axis=0)
@@ -305,14 +307,61 @@ def _run_local(dataset: MeshDataset, params: PGPParams, a, b, local, progress, p
     return res, info
 
 
-def _filter_anchors(dataset: MeshDataset, anchors, mode: str, min_refs: int = 3) -> tuple[int, int, int]:
-    """The frame the filter runs in (`PGPParams.frame`: "auto" or "proxy")."""
+def _filter_anchors(dataset: MeshDataset, anchors, mode: str, min_refs: int = 3, say: str = "") -> tuple[int, int, int]:
+    """The frame the filter runs in (`PGPParams.frame`: "auto" or "proxy"); `say`: the method's name, to
+    say in one line (logger "jaxcal", info) why it is not the configuration's frame."""
     from jaxcal.mesh import identify
 
     if mode == "proxy":
         best = identify.choose_frame(dataset.range, min_refs=min_refs, need=anchors)
-        return anchors if best is None else best[0]
-    return identify.filter_frame(dataset.range, anchors, min_refs=min_refs)
+        b = anchors if best is None else best[0]
+    else:
+        b = identify.filter_frame(dataset.range, anchors, min_refs=min_refs)
+    if say and b != tuple(anchors):
+        ids = dataset.node_ids
+        own, tri = (identify.frame_reach(dataset.range, t, min_refs) for t in (anchors, b))
+        logging.getLogger("jaxcal").info(
+            "%s: the filter runs in frame %s, not %s (from it the filter reaches %d of the %d nodes the ranges "
+            "fix there; from %s %d of %d)",
+            say,
+            "/".join(ids[v] for v in b),
+            "/".join(ids[v] for v in anchors),
+            tri[1],
+            tri[0],
+            "/".join(ids[v] for v in anchors),
+            own[1],
+            own[0],
+        )
+    return b
+
+
+def _report_frame(dataset: MeshDataset, a, b, final: np.ndarray, method: str) -> tuple[int, int, int]:
+    """The frame a run in frame `b` is reported in: the configuration's `a` when the ranges determine it
+    and the run placed its a0, a1, a2 (`final`, (N, 2) in `b`), else `b` itself, with one warning line
+    (moved into a frame with a mirror image, every node would be placed in one of two frames at random)."""
+    from jaxcal.mesh.identify import identify_ranges
+
+    a, b = tuple(a), tuple(b)
+    if a == b:
+        return a
+    own = identify_ranges(dataset.range, a, ids=dataset.node_ids)
+    if own.frame_fixed and np.isfinite(final[list(a)]).all():
+        return a
+    if own.mirror:
+        why = f"has a mirror image ({own.mirror})"
+    elif not own.frame_fixed:
+        why = "is not determined by the ranges"
+    else:
+        why = "has a node the filter did not localise"
+    ids = dataset.node_ids
+    logging.getLogger("jaxcal").warning(
+        "%s: frame %s %s: the result is in the filter's frame %s",
+        method,
+        "/".join(ids[v] for v in a),
+        why,
+        "/".join(ids[v] for v in b),
+    )
+    return b
 
 
 def _to_config_frame(final, cov, track, anchors):
