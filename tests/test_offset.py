@@ -10,7 +10,7 @@ import numpy as np
 from jaxcal import solver as S
 from jaxcal.data import TrajectoryDataset
 from jaxcal.precision import in_float64
-from jaxcal.trajectory import common, nls
+from jaxcal.trajectory import common, nls, offset
 from test_nls import lissajous
 from trajectory_campaigns import one_anchor_dataset
 
@@ -98,3 +98,38 @@ def test_thinned_start_fit_gives_the_offset_of_the_full_one(rng):
     assert abs(fast["time_offset_estimate_s"] - ref["time_offset_estimate_s"]) < 0.05 * sd, (fast, ref)
     assert abs(fast["time_offset_sd_s"] - sd) < 0.05 * sd
     np.testing.assert_allclose(fast["offset_sensitivity"], ref["offset_sensitivity"], rtol=0.05, atol=1e-3)
+
+
+def test_joint_fit_converges_to_the_same_offset_from_two_starts(rng):
+    """The joint rounds stop on the step test (well below the cap), and where they stop hardly depends on the
+    start: the estimate and its sd agree from the stated offset and from 0.15 s away (the Cauchy scales are
+    frozen where the hold rounds end, which depends on the start: up to a tenth of an sd)."""
+    shift = float(rng.uniform(-0.2, 0.2))
+    ds = lissajous(noise=0.05, shift_s=shift, seed=int(rng.integers(1 << 30)), bias=0.2)
+    _, a = prepare(ds, nls.NLSParams(estimate_offset=True, time_offset_s=0.0))
+    _, b = prepare(ds, nls.NLSParams(estimate_offset=True, time_offset_s=0.15))
+    assert 0 < a["time_offset_rounds"] < offset.MAX_ROUNDS and 0 < b["time_offset_rounds"] < offset.MAX_ROUNDS
+    sd = a["time_offset_sd_s"]
+    assert abs(a["time_offset_estimate_s"] - b["time_offset_estimate_s"]) < 0.1 * sd, (a, b)
+    assert abs(a["time_offset_sd_s"] - b["time_offset_sd_s"]) < 0.15 * sd
+    assert a["time_offset_stretch_p"] > offset.MIN_STRETCH_P  # one offset throughout: the Q test keeps it
+
+
+def test_stretches_with_different_offsets_give_no_offset(rng, caplog):
+    """The clock jumps by 0.1 s halfway (the ranges of the second half stamped later): the stretches disagree
+    far beyond their sd, so the offset is NaN and not applied, with one line."""
+    ds = lissajous(noise=0.05, seed=int(rng.integers(1 << 30)), bias=0.2)
+    t = np.asarray(ds.range_time)
+    ds = eqx.tree_at(lambda d: d.range_time, ds, np.where(t > 30.0, t + 0.1, t))
+    _, info = prepare(ds, nls.NLSParams(estimate_offset=True, time_offset_s=0.0))
+    assert np.isnan(info["time_offset_estimate_s"]) and info["time_offset_s"] == 0.0
+    assert info["time_offset_stretch_p"] < offset.MIN_STRETCH_P
+    assert "disagree" in caplog.text and "not applied" in caplog.text
+
+
+def test_stated_pose_drift_widens_the_offset_sd(rng):
+    ds = lissajous(noise=0.05, shift_s=0.1, seed=int(rng.integers(1 << 30)), bias=0.2)
+    _, plain = prepare(ds, nls.NLSParams(estimate_offset=True))
+    _, drift = prepare(ds, nls.NLSParams(estimate_offset=True, pose_drift=0.02))
+    assert drift["time_offset_estimate_s"] == plain["time_offset_estimate_s"]  # the estimate is the same
+    assert drift["time_offset_sd_s"] > 1.2 * plain["time_offset_sd_s"], (drift, plain)
