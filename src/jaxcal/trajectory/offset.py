@@ -22,13 +22,15 @@ over 4 stretches of consecutive ranges per anchor (range errors persist along a 
 building; few long stretches see the longer ones), plus the part of a stated pose error (`pose_sd_m`,
 `pose_drift`: the propagation of `jaxcal.trajectory.pose_error` applied to the profiled rate w u_p / S;
 odometry drift along the path correlates with the range rate and leaks into tau, which no range statistic
-can show). Not identifiable (NaN, not applied, one line):
-relative information S / sum u^T W u below `min_relative_info` (the rate is constant per anchor), a
-standard deviation above a quarter of the search interval, an estimate at its bound, or stretches that
-disagree: one offset column per quarter of each anchor's ranges (the quarters share the anchors, profiled
-out as above) gives each quarter's offset; Cochran's Q of their spread (cluster sandwich within each quarter,
-floored at the model variance, plus the stated pose error's covariance) with a p-value below
-`MIN_STRETCH_P` says the offset jumps or drifts, or the poses drift more than stated.
+can show). Stretches that disagree: one offset column per quarter of each anchor's ranges (the quarters
+share the anchors, profiled out as above) gives each quarter's offset; Cochran's Q of their spread (cluster
+sandwich within each quarter, floored at the model variance, plus the stated pose error's covariance) with a
+p-value below `MIN_STRETCH_P` says the offset jumps or drifts, or the poses drift more than stated: their
+mean is applied with the sd of the mean under the DerSimonian-Laird between-stretch variance (random
+effects), and one line says so. Not identifiable (NaN, not applied, one line): relative information
+S / sum u^T W u below `min_relative_info` (the rate is constant per anchor), a standard deviation above a
+quarter of the search interval (the rounds stop early once the model sd alone is above it), or an estimate
+at its bound.
 
 Every anchor then moves with tau by da_k / d tau = -(H_k^-1 c_k)[:3]; `finish` adds
 var(tau) (da/dtau)(da/dtau)^T to the covariance of every method (`common.offset_covariances`).
@@ -77,6 +79,7 @@ class OffsetFit(eqx.Module):
 
 _HOLD_ROUNDS = 2  # rounds with tau held at its start (the weights settle first)
 MAX_ROUNDS = 500  # cap on the joint rounds (a warning line when reached)
+_HOPELESS_AFTER = 10  # rounds after which a model sd above a quarter of the interval stops the fit (NaN anyway)
 _MAX_STEP_S = 0.2  # largest change of tau per round [s]
 _MAX_ANCHOR_STEP_M = 2.0  # largest move of an anchor per round [m]
 MIN_STRETCH_P = 1e-5  # Cochran Q threshold (simulated `small`, odd seeds 1-19: the least p without a jump, 1.9e-4)
@@ -149,19 +152,22 @@ def _fit(pos_fn, time, tag, rng, mask, a0, b0, tau0, max_offset_s, min_scale, to
     scale = jnp.where(freeze, linearise(tau, a, b, jnp.zeros(n_a))[-1], 0.0)
 
     def cond(s):
-        return (s[0] < MAX_ROUNDS) & ~s[-1]
+        return (s[0] < MAX_ROUNDS) & ~s[-1] & ~s[-2]
 
     def body(s):
-        k, tau, a, b, prev, damp, _ = s
+        k, tau, a, b, prev, damp, _, _ = s
         dtau, sd, hi_c, hi_g = gn(tau, a, b, scale)
         # a 2-cycle (the step flips sign without shrinking) halves the steps (tau's and the anchors') from here on
         damp = jnp.where((dtau * prev < 0) & (jnp.abs(dtau) > 0.5 * jnp.abs(prev)), 0.5 * damp, damp)
         done = jnp.abs(dtau) <= tol * sd
+        # the model sd alone already above a quarter of the interval: the offset will be NaN, stop wandering
+        hopeless = (k >= _HOPELESS_AFTER) & (sd > 0.25 * max_offset_s)
         tau, a, b = move(tau, a, b, dtau, hi_c, hi_g, damp)
-        return k + 1, tau, a, b, dtau, damp, done
+        return k + 1, tau, a, b, dtau, damp, hopeless, done
 
     one = jnp.ones((), rng.dtype)
-    k, tau, a, b, _, _, done = jax.lax.while_loop(cond, body, (0, tau, a, b, 0.0 * one, one, jnp.array(False)))
+    no = jnp.array(False)
+    k, tau, a, b, _, _, _, done = jax.lax.while_loop(cond, body, (0, tau, a, b, 0.0 * one, one, no, no))
 
     res, u, jac, w, ok, hi_c, _, unit, _ = linearise(tau, a, b, scale)
     u_p = u - jnp.einsum("ani,ai->an", jac, hi_c)  # the rate left after the anchor and bias are fitted
@@ -242,12 +248,17 @@ def _stretch_test(w, u, u_p, res, ok, unit, t, info, s2, pose, n_clusters: int):
     if sd_m > 0 or drift > 0:
         cov_pose = _pose_cov(cols, unit.reshape(-1, 3)[flat][order], t.reshape(-1)[flat][order], sd_m, drift, t0)
     if m < 2:
-        return 0.0, 0, 1.0, cov_pose, theta
-    ci = np.linalg.inv(var + cov_pose[:m, :m])
+        return 0.0, 0, 1.0, cov_pose, theta, 0.0
+    v = var + cov_pose[:m, :m]
+    ci = np.linalg.inv(v)
     one = np.ones(m)
     r = theta - one @ ci @ theta / (one @ ci @ one)
     q = float(r @ ci @ r)
-    return q, m - 1, float(chi2.sf(q, m - 1)), cov_pose, theta
+    # DerSimonian-Laird between-stretch variance t2 (moment estimate from Q), and the variance of the mean
+    # offset under it (random effects): what a constant offset fitted to a varying one is worth
+    t2 = max(0.0, (q - (m - 1)) / max(np.trace(ci) - one @ ci @ ci @ one / (one @ ci @ one), 1e-300))
+    var_mean = float(1.0 / (one @ np.linalg.solve(v + t2 * np.eye(m), one)))
+    return q, m - 1, float(chi2.sf(q, m - 1)), cov_pose, theta, var_mean
 
 
 def estimate(
@@ -286,7 +297,7 @@ def estimate(
         tol: converged when the Gauss-Newton step on the offset is below tol x its model sd.
         freeze_scale: keep the Cauchy scale of each anchor fixed after the hold rounds (else re-estimated
             every round, which moves the fixed point).
-        min_stretch_p: NaN when Cochran's Q across the stretches has a p-value below it.
+        min_stretch_p: below this p-value of Cochran's Q across the stretches, the sd is widened to their spread.
         pose_sd_m, pose_drift, pose_t0: the stated horizontal pose error (`jaxcal.trajectory.pose_error`) and
             the time of the first pose [s] (None: the first range); they widen the offset's sd.
 
@@ -338,20 +349,16 @@ def estimate(
     ok = np.asarray(out[12], dtype=bool)
     tau = float(tau_a)
     t0 = float(np.nanmin(t_all)) if pose_t0 is None else float(pose_t0)
-    q, dof, p_q, cov_pose, theta = _stretch_test(
+    q, dof, p_q, cov_pose, theta, var_mean = _stretch_test(
         w, u, u_p, res, ok, unit, time, float(info), float(var_model * info), (pose_sd_m, pose_drift, t0), n_clusters
     )
     var_pose = float(cov_pose[-1, -1])
     sd = float(np.sqrt(max(var_model, var_sand) + var_pose)) if info > 0 else float("inf")
+    varies = dof > 0 and p_q < min_stretch_p
+    if varies:  # the stretches disagree: the offset varies along the recording; the mean with its random-effects sd
+        sd = max(sd, float(np.sqrt(var_mean)))
     rel = float(info / total) if total > 0 else 0.0
     sens = np.where(np.isfinite(sens_a), sens_a, 0.0)
-    if not converged:
-        logging.getLogger("jaxcal").warning(
-            "clock offset: the joint fit did not converge in %d rounds (last step above %g sd); its estimate is "
-            "where it stopped",
-            rounds,
-            tol,
-        )
     reason = ""
     if not (rel >= min_relative_info and np.isfinite(sd)):
         reason = (
@@ -362,11 +369,26 @@ def estimate(
         reason = f"its standard deviation {sd:.3f} s is above a quarter of the search interval +-{max_offset_s:g} s"
     elif abs(tau) >= max_offset_s * (1.0 - 1e-6):
         reason = f"the fit ran to the bound of the search interval +-{max_offset_s:g} s (raise max_offset_s)"
-    elif dof > 0 and p_q < min_stretch_p:
-        reason = (
-            f"the {dof + 1} stretches of the ranges disagree on it beyond their sd (Cochran Q {q:.1f} on {dof} dof, "
-            f"p {p_q:.1e} < {min_stretch_p:g}; their offsets {', '.join(f'{tau + x:+.3f}' for x in theta)} s): the "
-            "offset drifts or jumps, or the poses drift more than stated"
+    log = logging.getLogger("jaxcal")
+    if not converged and not reason:
+        log.warning(
+            "clock offset: the joint fit did not converge in %d rounds (last step above %g sd); its estimate is "
+            "where it stopped",
+            rounds,
+            tol,
+        )
+    if varies and not reason:
+        log.warning(
+            "clock offset: the %d stretches of the ranges disagree on it beyond their sd (Cochran Q %.1f on %d dof, "
+            "p %.1e < %g; their offsets %s s): the offset drifts or jumps, or the poses drift more than stated; "
+            "their mean is applied with the sd widened to their spread (+-%.4f s)",
+            dof + 1,
+            q,
+            dof,
+            p_q,
+            min_stretch_p,
+            ", ".join(f"{tau + x:+.3f}" for x in theta),
+            sd,
         )
     p_out, stretches = (p_q if dof > 0 else float("nan")), tuple(float(tau + x) for x in theta)
     if reason:
