@@ -447,7 +447,9 @@ def prepare_offset(dataset, p: TrajectoryParams, start_per_anchor: int = START_P
     Returns:
         (AnchorRanges, info): info as `prepare_poses`'s (`time_offset_s` the offset applied) and, with
         `estimate_offset`, `time_offset_estimate_s`, `time_offset_sd_s` (NaN where not identifiable) and
-        `offset_sensitivity` ((A, 3) d anchor / d offset [m/s]; `finish` adds the offset's variance with it).
+        `offset_sensitivity` ((A, 3) d anchor / d offset [m/s]; `finish` adds the offset's variance with it),
+        `time_offset_rounds` (the joint fit's rounds) and `time_offset_stretch_p` (Cochran Q's p-value). A stated
+        `pose_sd_m` / `pose_drift` widens the offset's sd.
     """
     fixed = eqx.tree_at(lambda q: q.estimate_offset, p, False)
     if not p.estimate_offset:
@@ -459,9 +461,17 @@ def prepare_offset(dataset, p: TrajectoryParams, start_per_anchor: int = START_P
     p_nls = p if isinstance(p, NLSParams) else with_overrides(NLSParams(), shared)
     (est, _, bias, _), _, _ = solve_all_checked(start, p_nls)
     model = fit_poses(dataset, p.order, p.knot_dt_s, p.max_gap_s)
-    fit = estimate_offset_fit(model, dataset, np.asarray(est), np.asarray(bias), p.time_offset_s, p.max_offset_s)
+    pose = {"pose_sd_m": p.pose_sd_m, "pose_drift": p.pose_drift, "pose_t0": float(np.asarray(dataset.pose_time)[0])}
+    fit = estimate_offset_fit(
+        model, dataset, np.asarray(est), np.asarray(bias), p.time_offset_s, p.max_offset_s, **pose
+    )
     logging.getLogger("jaxcal").warning("%s", summary(fit, p.time_offset_s))
-    extra: dict = {"time_offset_estimate_s": fit.offset_s, "time_offset_sd_s": fit.sd_s}
+    extra: dict = {
+        "time_offset_estimate_s": fit.offset_s,
+        "time_offset_sd_s": fit.sd_s,
+        "time_offset_rounds": fit.rounds,
+        "time_offset_stretch_p": fit.stretch_p,
+    }
     applied = p.time_offset_s
     if np.isfinite(fit.offset_s):
         applied = fit.offset_s

@@ -305,13 +305,24 @@ def prepare(
 
 
 @in_float64
-def estimate_offset_fit(model: PoseModel, ds, anchors, bias, start_s: float = 0.0, max_offset_s: float = 1.0):
+def estimate_offset_fit(
+    model: PoseModel, ds, anchors, bias, start_s: float = 0.0, max_offset_s: float = 1.0, **options
+):
     """The clock offset of `ds` with its standard deviation (`jaxcal.trajectory.offset.estimate`: from
     `start_s` [s] and the anchors (A, 3) [m] and range biases (A,) [m] fitted at it, within +-`max_offset_s`):
-    an `OffsetFit`."""
+    an `OffsetFit`; `options` go to `estimate`."""
     pos_fn = jax.tree_util.Partial(tag_positions, model, jnp.asarray(ds.lever_arm))
     return estimate(
-        pos_fn, ds.range_time, ds.range_tag, ds.range_anchor, ds.range, anchors, bias, start_s, max_offset_s
+        pos_fn,
+        ds.range_time,
+        ds.range_tag,
+        ds.range_anchor,
+        ds.range,
+        anchors,
+        bias,
+        start_s,
+        max_offset_s,
+        **options,
     )
 
 
