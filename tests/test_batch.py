@@ -2,7 +2,6 @@
 
 import json
 
-import equinox as eqx
 import h5py
 import jax
 import jax.numpy as jnp
@@ -649,24 +648,56 @@ def test_estimate_mean_rejects_bad_settings():
             B.BatchParams(**kw)
 
 
-def test_improper_posterior_falls_back_to_the_fit_before_sampling_with_one_warning_line(rng, caplog):
-    # Node 4 ranges a0 only: under the Student-t (nu=1) pair likelihood its posterior decays like 1/r^2
-    # over an area growing like r, so it is improper. The fallback is decided from the measurement graph
-    # before sampling (no R-hat: the sampler never runs), whatever the seed or the CPU.
-    truth = random_geometry(rng, 2)
-    r = ranges_of(truth, noise=0.05, rng=rng, missing=[(4, k) for k in range(1, N)])
-    fit = B.solve(r, (0, 1, 2), B.BatchParams(**FAST))
-    p = B.BatchParams(mcmc_steps=400, **{**FAST, "estimate": "mean"})
-    sol = B.solve(r, (0, 1, 2), p)
-    assert sol.estimate == "map" and np.isnan(sol.mcmc_rhat) and np.isnan(sol.mcmc_accept)
-    assert "4 ranges only 0" in sol.fallback_reason
-    np.testing.assert_array_equal(sol.position, fit.position)
-    np.testing.assert_array_equal(sol.covariance, fit.covariance)
+def _one_weak_node(rng):
+    """N + 1 nodes with noisy ranges, node N ranging a0 only: the graph fixes every node but N."""
+    truth = random_geometry(rng, 2, n=N + 1)
+    r = ranges_of(truth, noise=0.05, rng=rng, missing=[(0, 5)] + [(N, k) for k in range(1, N)])
+    return truth, r
+
+
+def test_an_improper_posterior_is_one_warning_line(rng, caplog):
+    # Node N ranges a0 only: the graph does not fix it (and under the Student-t (nu=1) pair likelihood its
+    # posterior would be improper). Decided from the measurement graph (`identify`), not from the chains: N
+    # is left out of the covariance problem and the posterior, the other nodes get the posterior mean and
+    # a covariance, and N is a NaN row named in one warning line.
+    truth, r = _one_weak_node(rng)
+    ids = tuple(str(k) for k in range(N + 1))
+    ds = MeshDataset(name="weak", node_ids=ids, time=np.arange(K, dtype=float), range=r, configs={"f": (0, 1, 2)})
+    over = {**FAST, "estimate": "mean", "mcmc_steps": 400}
     with caplog.at_level("WARNING", logger="jaxcal"):
-        assert B.warn_if_unmixed(sol, p)
-        assert not B.warn_if_unmixed(sol, B.BatchParams(estimate="map"))
-        assert not B.warn_if_unmixed(eqx.tree_at(lambda s: s.estimate, sol, "mean"), p)
-    assert len(caplog.records) == 1 and "improper" in caplog.text and "4 ranges only 0" in caplog.text
+        res = B.calibrate(ds, over, "f")
+    assert res.params["estimate"] == "mean"
+    assert np.isnan(res.position[N]).all() and np.isnan(res.covariance[N]).all()
+    cov = res.covariance[1:N]
+    assert np.isfinite(cov).all() and np.all(np.linalg.eigvalsh(cov[1:]) > 0) and np.all(cov[0, 0, 0] > 0)
+    assert len(caplog.records) == 1 and f"{N} ranges only 0" in caplog.text
+    assert "\n" not in caplog.records[0].getMessage()
+
+
+def test_the_covariance_of_the_fixed_nodes_is_that_without_the_unfixed_one(rng):
+    # The unfixed node's ranges carry no information about the others: leaving them out of the covariance
+    # problem gives the covariance of the network without that node (here: with it never ranging at all).
+    _, r = _one_weak_node(rng)
+    alone = r.copy()
+    alone[:, N, :] = alone[:, :, N] = np.nan
+    sol, ref = (B.solve(x, (0, 1, 2), B.BatchParams(**FAST)) for x in (r, alone))
+    assert np.isnan(sol.covariance[N]).all() and np.isfinite(sol.covariance[:N]).all()
+    np.testing.assert_allclose(sol.covariance[:N], ref.covariance[:N], rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(sol.position[:N], ref.position[:N], atol=1e-6)
+
+
+def test_a_mirror_frame_node_leaves_no_covariance_with_one_warning_line(rng, caplog):
+    # a1 ranges only n3 and n4 (not a0): reflected through them it changes no range but turns the frame,
+    # so every node but a0 has two places: positions are reported, covariances are not (one warning line).
+    truth = random_geometry(rng, 2)
+    r = ranges_of(truth, noise=0.05, rng=rng, missing=[(1, k) for k in (0, 2, 5, 6)])
+    ids = tuple(f"n{k}" for k in range(N))
+    ds = MeshDataset(name="mirror", node_ids=ids, time=np.arange(K, dtype=float), range=r, configs={"f": (0, 1, 2)})
+    with caplog.at_level("WARNING", logger="jaxcal"):
+        res = B.calibrate(ds, FAST, "f")
+    assert np.isfinite(res.position).all()
+    assert np.all(res.covariance[0] == 0.0) and np.isnan(res.covariance[1:]).all()
+    assert len(caplog.records) == 1 and "frame node n1 ranges only n3, n4" in caplog.text
     assert "\n" not in caplog.records[0].getMessage()
 
 

@@ -25,6 +25,12 @@ the fit itself (the posterior mode, `estimate=map`). In a weak geometry the two 
 one with the least expected squared error. It is sampled from a model where the pair, not the single
 range, is the unit of information (repeated ranges of one pair share its systematic error).
 
+Only the nodes that the measurement graph fixes in the frame (`jaxcal.mesh.identify`) and the ranges between
+them enter the covariance and the posterior: a node that ranges one or two others would make the Hessian
+singular (or the posterior improper) for every node. The others keep the fit's position, which
+`calibrate` turns into a NaN row with one warning line. A frame node with a mirror image (a1 ranging only
+D nodes, none of them a0) leaves the nodes placed through the frame without a covariance (one warning line).
+
 Output frame: a0 at the origin, a1 on +x, a2 with y > 0 (CONTRACT 1.1). Covariances are computed in
 gauge-fixed coordinates of that frame, so they are exactly zero for the coordinates the frame fixes. The
 reported covariance rests on the covariance under per-pair systematic errors whose size is estimated

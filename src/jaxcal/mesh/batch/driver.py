@@ -17,7 +17,14 @@ from jaxtyping import Array
 from jaxcal import solver as S
 from jaxcal.data import MeshDataset, Result
 from jaxcal.mesh.batch.bootstrap import offset_bootstrap
-from jaxcal.mesh.batch.covariance import _covariance, _pair_level_covariance, covariance_union, posterior_excess
+from jaxcal.mesh.batch.covariance import (
+    _covariance,
+    _covariance_nodes,
+    _pair_level_covariance,
+    _restrict,
+    covariance_union,
+    posterior_excess,
+)
 from jaxcal.mesh.batch.fit import (
     _extra_starts,
     _fit_starts,
@@ -89,6 +96,7 @@ class _Estimate:
         used: `map` or `mean`; reason: why `estimate=mean` fell back to the fit ("" when it did not).
         accept, rhat, transitions: the sampler's acceptance rate, largest split R-hat, transitions per chain.
         excess: (F, F) the posterior's excess over its linearisation (`posterior_excess`; with `used=mean`).
+        keep: (m,) the nodes the covariance rests on (`_covariance_nodes`); `mask` is False for the others.
     """
 
     frame: np.ndarray
@@ -102,6 +110,7 @@ class _Estimate:
     rhat: float = float("nan")
     transitions: int = 0
     excess: np.ndarray | None = None
+    keep: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=bool))
 
 
 def stage_count(params: BatchParams) -> int:
@@ -251,8 +260,14 @@ def _sample_posterior(
     """Stage 6 (`estimate=mean`): the posterior mean and covariance (`posterior_mean`) replace the fit in
     `est`, unless the graph makes the posterior improper (`posterior_defect`) or the chains do not mix."""
     n_off = int(chosen != "none")  # per-node offsets have a proper prior of their own
-    ids = tuple(prob.node_ids[k] for k in prob.sub)
-    est.reason = posterior_defect(prob.pair_i, prob.pair_j, prob.m, p.dim, p.student_nu, n_off, ids, p.seed)
+    # the graph of the nodes the covariance rests on (`_covariance_nodes`): the others are not sampled
+    kept = np.flatnonzero(est.keep)
+    ids = tuple(prob.node_ids[k] for k in prob.sub[kept])
+    index = np.full(prob.m, -1)
+    index[kept] = np.arange(kept.size)
+    both = est.keep[prob.pair_i] & est.keep[prob.pair_j]
+    pi, pj = index[prob.pair_i[both]], index[prob.pair_j[both]]
+    est.reason = posterior_defect(pi, pj, kept.size, p.dim, p.student_nu, n_off, ids, p.seed)
     if est.reason:
         return est
     free = est.frame[est.mask]
@@ -286,15 +301,16 @@ def _sample_posterior(
     return est
 
 
-def _per_node(prob: _Problem, mask: np.ndarray, cov_f: np.ndarray) -> np.ndarray:
-    """(F, F) covariance over the free coordinates -> (N, D, D) per-node blocks, NaN where undefined."""
+def _per_node(prob: _Problem, mask: np.ndarray, cov_f: np.ndarray, defined: np.ndarray) -> np.ndarray:
+    """(F, F) covariance over the free coordinates -> (N, D, D) per-node blocks, NaN where undefined (and
+    for the active nodes not in `defined` (m,))."""
     m, dim = mask.shape
     full_idx = np.flatnonzero(mask.ravel())
     cov_all = np.zeros((m * dim, m * dim))
     cov_all[np.ix_(full_idx, full_idx)] = cov_f
     blocks = np.stack([cov_all[k * dim : (k + 1) * dim, k * dim : (k + 1) * dim] for k in range(m)])
     blocks = 0.5 * (blocks + np.swapaxes(blocks, 1, 2))
-    blocks[~np.isfinite(blocks).all(axis=(1, 2))] = np.nan
+    blocks[~np.isfinite(blocks).all(axis=(1, 2)) | ~defined] = np.nan
     out = np.full((prob.n, dim, dim), np.nan)
     out[prob.sub] = blocks
     return out
@@ -346,13 +362,22 @@ def solve(
         done(1)
     state = fit.state
     x_frame_sub, mask = _anchor_frame(prob, p, state)
+    # Only the nodes the measured graph fixes, and the ranges between them, enter the covariance problem
+    b0, b1, b2 = (int(prob.remap[a]) for a in prob.anchors)
+    ids = tuple(prob.node_ids[k] for k in prob.sub)
+    keep, defined, cov_note = _covariance_nodes(prob.pair_i, prob.pair_j, prob.m, (b0, b1, b2), p.dim, ids)
+    mask = mask & keep[:, None]
+    obs, obs_pairs, pairs = _restrict(obs, keep), _restrict(obs_pairs, keep), _restrict(prob.pairs, keep)
     free = x_frame_sub[mask]
     cov_free, s2 = _covariance(
         jnp.asarray(free), jnp.asarray(x_frame_sub), jnp.asarray(mask), state.c, state.b, obs, nb
     )
     done(1)
-    est = _Estimate(x_frame_sub, mask, float(state.c), np.asarray(state.b), np.asarray(cov_free))
-    if p.estimate == "mean":
+    est = _Estimate(x_frame_sub, mask, float(state.c), np.asarray(state.b), np.asarray(cov_free), keep=keep)
+    if p.estimate == "mean" and cov_note:  # two mirror-image frames: the posterior mean is no estimate
+        est.reason = cov_note
+        done(1)
+    elif p.estimate == "mean":
         est = _sample_posterior(prob, p, nb, key, chosen, state, obs_pairs, est, done)
     # Per-pair systematic errors, sized from the data (`pair_covariance`), at the estimate reported
     cov_pair = _pair_level_covariance(
@@ -364,7 +389,7 @@ def solve(
         mask,
         est.offset,
         est.node_offsets,
-        prob.pairs,
+        pairs,
         obs,
         nb,
     )
@@ -379,7 +404,7 @@ def solve(
     node_off[prob.sub] = est.node_offsets if chosen == "node" else 0.0
     return BatchSolution(
         position=position,
-        covariance=_per_node(prob, mask, cov_free),
+        covariance=_per_node(prob, mask, cov_free, defined),
         offset_m=est.offset if chosen != "none" else 0.0,
         node_offset_m=node_off,
         cost=fit.cost,
@@ -391,14 +416,20 @@ def solve(
         mcmc_rhat=est.rhat,
         estimate=est.used,
         fallback_reason=est.reason,
-        model_covariance=_per_node(prob, mask, est.model_covariance),
+        model_covariance=_per_node(prob, mask, est.model_covariance, defined),
         solver_codes=np.append(np.asarray(fit.code), boot_codes).astype(int),
         mcmc_transitions=est.transitions,
+        covariance_note=cov_note,
     )
 
 
 def warn_if_unmixed(solution: BatchSolution, params: BatchParams) -> bool:
-    """Log one warning line (logger `jaxcal`) when `estimate=mean` fell back to the fit; True if so."""
+    """Log one warning line (logger `jaxcal`) when `estimate=mean` fell back to the fit or a frame node's mirror
+    image leaves nodes without a covariance (`BatchSolution.covariance_note`); True if so."""
+    if solution.covariance_note:
+        fell_back = "; reporting the fit (estimate=map)" if params.estimate == "mean" else ""
+        logging.getLogger("jaxcal").warning("batch: %s%s; add ranges to it", solution.covariance_note, fell_back)
+        return True
     if params.estimate != "mean" or solution.estimate == "mean":
         return False
     hint = "add ranges"
