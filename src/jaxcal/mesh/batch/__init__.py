@@ -28,8 +28,8 @@ range, is the unit of information (repeated ranges of one pair share its systema
 Only the nodes that the measurement graph fixes in the frame (`jaxcal.mesh.identify`) and the ranges between
 them enter the covariance and the posterior: a node that ranges one or two others would make the Hessian
 singular (or the posterior improper) for every node. The others keep the fit's position, which
-`calibrate` turns into a NaN row with one warning line. A frame node with a mirror image (a1 ranging only
-D nodes, none of them a0) leaves the nodes placed through the frame without a covariance (one warning line).
+`calibrate` turns into a NaN row with one warning line. A frame with a mirror image (a frame node ranging only
+D fixed nodes) leaves only the frame's measured triangle fixed (`identify`): the others are NaN rows too.
 
 Output frame: a0 at the origin, a1 on +x, a2 with y > 0 (CONTRACT 1.1). Covariances are computed in
 gauge-fixed coordinates of that frame, so they are exactly zero for the coordinates the frame fixes. The

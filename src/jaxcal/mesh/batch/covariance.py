@@ -158,39 +158,20 @@ def _pair_level_covariance(
 
 def _covariance_nodes(
     pair_i: np.ndarray, pair_j: np.ndarray, m: int, anchors: tuple[int, int, int], dim: int, ids: tuple[str, ...]
-) -> tuple[np.ndarray, np.ndarray, str]:
+) -> np.ndarray:
     """Which active nodes the covariance rests on, from the measurement graph (`identify`), not the ranges.
 
     Args: pair_i, pair_j: (M,) the measured pairs among the m active nodes; anchors: (a0, a1, a2) among them;
-    dim: 2 or 3; ids: (m,) node ids (for the note).
+    dim: 2 or 3; ids: (m,) node ids.
 
-    Returns (keep, defined, note): `keep` (m,) the nodes the pairs fix in the frame (only they and the pairs
-    between them enter the covariance problem: an unfixed node's flex makes the Hessian singular and its NaN
-    spread to every block); `defined` (m,) the nodes that get a covariance; `note` one line when a frame node
-    has a mirror image (a1 without a range to a0, or in 3-D a2 without ranges to both a0 and a1, with only
-    `dim` fixed neighbours: reflected through them it changes no range but turns the frame, and every node
-    placed through the frame with it), "" otherwise.
+    Returns `keep` (m,): the nodes the pairs fix in the frame. Only they and the pairs between them enter the
+    covariance problem (an unfixed node's flex makes the Hessian singular and its NaN spread to every block).
+    A frame with a mirror image (a frame node with only `dim` fixed neighbours) leaves only the frame's
+    measured triangle fixed (`identify`), so nothing placed through the frame gets a covariance.
     """
     adj = np.zeros((m, m), dtype=bool)
     adj[pair_i, pair_j] = adj[pair_j, pair_i] = True
-    a0, a1, a2 = anchors
-    keep = identify.identify(adj, (a0, a1, a2), dim, ids).fixed
-    defined = keep.copy()
-    note = ""
-    frame_links = {a1: {a0}, a2: {a0, a1}} if dim == 3 else {a1: {a0}}
-    for node, links in frame_links.items():
-        nbrs = set(np.flatnonzero(adj[node] & keep).tolist())
-        if keep[node] and not links <= nbrs and len(nbrs) == dim:
-            turned = np.arange(m) != a0 if node == a1 else ~np.isin(np.arange(m), (a0, a1))
-            defined &= ~turned
-            names = ", ".join(ids[k] for k in sorted(nbrs))
-            placed = ", ".join(ids[k] for k in np.flatnonzero(turned & keep))
-            note = (
-                f"frame node {ids[node]} ranges only {names}: its mirror image through them fits every range "
-                f"and turns the frame, so no covariance for the nodes placed in it ({placed})"
-            )
-            break
-    return keep, defined, note
+    return identify.identify(adj, anchors, dim, ids).fixed
 
 
 def _restrict(obs: Observations, keep: np.ndarray) -> Observations:

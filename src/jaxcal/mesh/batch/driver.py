@@ -365,7 +365,7 @@ def solve(
     # Only the nodes the measured graph fixes, and the ranges between them, enter the covariance problem
     b0, b1, b2 = (int(prob.remap[a]) for a in prob.anchors)
     ids = tuple(prob.node_ids[k] for k in prob.sub)
-    keep, defined, cov_note = _covariance_nodes(prob.pair_i, prob.pair_j, prob.m, (b0, b1, b2), p.dim, ids)
+    keep = _covariance_nodes(prob.pair_i, prob.pair_j, prob.m, (b0, b1, b2), p.dim, ids)
     mask = mask & keep[:, None]
     obs, obs_pairs, pairs = _restrict(obs, keep), _restrict(obs_pairs, keep), _restrict(prob.pairs, keep)
     free = x_frame_sub[mask]
@@ -374,10 +374,7 @@ def solve(
     )
     done(1)
     est = _Estimate(x_frame_sub, mask, float(state.c), np.asarray(state.b), np.asarray(cov_free), keep=keep)
-    if p.estimate == "mean" and cov_note:  # two mirror-image frames: the posterior mean is no estimate
-        est.reason = cov_note
-        done(1)
-    elif p.estimate == "mean":
+    if p.estimate == "mean":
         est = _sample_posterior(prob, p, nb, key, chosen, state, obs_pairs, est, done)
     # Per-pair systematic errors, sized from the data (`pair_covariance`), at the estimate reported
     cov_pair = _pair_level_covariance(
@@ -404,7 +401,7 @@ def solve(
     node_off[prob.sub] = est.node_offsets if chosen == "node" else 0.0
     return BatchSolution(
         position=position,
-        covariance=_per_node(prob, mask, cov_free, defined),
+        covariance=_per_node(prob, mask, cov_free, keep),
         offset_m=est.offset if chosen != "none" else 0.0,
         node_offset_m=node_off,
         cost=fit.cost,
@@ -416,20 +413,14 @@ def solve(
         mcmc_rhat=est.rhat,
         estimate=est.used,
         fallback_reason=est.reason,
-        model_covariance=_per_node(prob, mask, est.model_covariance, defined),
+        model_covariance=_per_node(prob, mask, est.model_covariance, keep),
         solver_codes=np.append(np.asarray(fit.code), boot_codes).astype(int),
         mcmc_transitions=est.transitions,
-        covariance_note=cov_note,
     )
 
 
 def warn_if_unmixed(solution: BatchSolution, params: BatchParams) -> bool:
-    """Log one warning line (logger `jaxcal`) when `estimate=mean` fell back to the fit or a frame node's mirror
-    image leaves nodes without a covariance (`BatchSolution.covariance_note`); True if so."""
-    if solution.covariance_note:
-        fell_back = "; reporting the fit (estimate=map)" if params.estimate == "mean" else ""
-        logging.getLogger("jaxcal").warning("batch: %s%s; add ranges to it", solution.covariance_note, fell_back)
-        return True
+    """Log one warning line (logger `jaxcal`) when `estimate=mean` fell back to the fit; True if so."""
     if params.estimate != "mean" or solution.estimate == "mean":
         return False
     hint = "add ranges"

@@ -209,8 +209,7 @@ class BatchSolution(eqx.Module):
         estimate: the estimate reported: `mean`, or `map` when asked for, when the measurement graph
             makes the pair-level posterior of the nodes it fixes improper or not locally identifiable
             (`posterior_defect`, decided before any sampling; the nodes it does not fix are left out of the
-            posterior and keep the fit), when a frame node has a mirror image (`covariance_note`), or when
-            the chains did not mix (R-hat above `RHAT_MAX` or undefined).
+            posterior and keep the fit), or when the chains did not mix (R-hat above `RHAT_MAX` or undefined).
         fallback_reason: why `estimate=mean` fell back to the fit ("" when it did not).
         model_covariance: (N, D, D) the model's own covariance (posterior sample covariance with
             `estimate=mean`, the Laplace covariance otherwise); the reported covariance is the pair-level
@@ -221,8 +220,6 @@ class BatchSolution(eqx.Module):
             offset bootstrap's replicate fits (`bias=auto`).
         mcmc_transitions: transitions per chain the sampler ran, burn-in included (at most `mcmc_steps`;
             fewer when `mcmc_mcse` was reached first); 0 without sampling.
-        covariance_note: one line when a frame node's mirror image leaves the nodes placed through the frame
-            without a covariance (NaN blocks; with `estimate=mean` the fit is reported); "" otherwise.
     """
 
     position: np.ndarray
@@ -241,7 +238,6 @@ class BatchSolution(eqx.Module):
     model_covariance: np.ndarray | None = None
     solver_codes: np.ndarray = eqx.field(default_factory=lambda: np.zeros(0, dtype=int))
     mcmc_transitions: int = 0
-    covariance_note: str = ""
 
 
 def observations(range_m: np.ndarray, summary: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
