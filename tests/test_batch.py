@@ -278,8 +278,23 @@ def test_posterior_excess_is_what_the_scaled_posterior_adds_to_its_linearisation
             np.testing.assert_allclose(B.posterior_excess((lap + extra) / k, lap, nu), extra, atol=1e-9)
             np.testing.assert_allclose(B.posterior_excess(0.5 * lap / k, lap, nu), 0.0, atol=1e-9)
             got = B.posterior_excess(other, lap, nu)  # k C - L indefinite: its positive part
+            k_used = B.covariance.fisher_ratio(other, lap, nu)  # at most k (`test_fisher_ratio_...`)
             assert np.linalg.eigvalsh(got).min() > -1e-9 * np.abs(got).max()
-            assert np.linalg.eigvalsh(got - (k * other - lap)).min() > -1e-9 * np.abs(got).max()
+            assert np.linalg.eigvalsh(got - (k_used * other - lap)).min() > -1e-9 * np.abs(got).max()
+
+
+def test_fisher_ratio_is_the_median_generalised_eigenvalue_capped_by_the_asymptotic_ratio(rng):
+    from scipy.linalg import eigh
+
+    for nu in (1.0, 4.0):
+        k = (nu + 1.0) / (nu + 3.0)
+        for _ in range(10):
+            lap, post = (m @ m.T + 0.1 * np.eye(6) for m in rng.normal(size=(2, 6, 6)))
+            ref = min(k, 1.0 / np.median(eigh(post, lap, eigvals_only=True)))  # slow, obvious reference
+            assert abs(B.covariance.fisher_ratio(post, lap, nu) - ref) < 1e-9 * ref
+            # a sparse network's posterior, wider than its linearisation alike in every direction: no excess
+            np.testing.assert_allclose(B.posterior_excess(3.0 / k * lap, lap, nu), 0.0, atol=1e-9)
+    assert B.covariance.fisher_ratio(np.eye(3), np.diag([1.0, 1.0, -1.0]), 1.0) == 0.5  # L not PD
 
 
 def _pair_covariance_reference(jac, e, w, spread, i, j, n):

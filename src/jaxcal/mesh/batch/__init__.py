@@ -39,7 +39,9 @@ epochs, with the part of its error that the geometry absorbs accounted for): wit
 widens the Laplace covariance `sigma^2 (J^T W J)^-1` of the all-ranges fit (W = IRLS weights psi(e)/e)
 in every direction (`covariance_union`); with `estimate=mean` the posterior's excess over its own
 linearisation is added to it (`posterior_excess`: the width of a curved, weakly determined posterior,
-which a linearised covariance cannot see; ~0 where the ranges fix the nodes to first order).
+which a linearised covariance cannot see; ~0 where the ranges fix the nodes to first order; measured
+against the posterior's median width over its linearisation, `fisher_ratio`, not the Student-t's
+asymptotic ratio, which a sparse network's posterior exceeds in every direction).
 
 Modules (one job each; the names below are re-exported here, `from jaxcal.mesh import batch` is the entry):
 `params` (`BatchParams`, observations), `problem` (the validated range stream), `model` (losses, state,
