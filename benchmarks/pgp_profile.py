@@ -31,7 +31,7 @@ def main(argv=None) -> int:
     ap.add_argument("--nodes", type=int, default=100)
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args(argv)
-    from jaxcal.mesh import identify, pgp, range_offset
+    from jaxcal.mesh import masking, pgp, range_offset
     from jaxcal.sim.mesh import simulate
     from jaxcal.sim.network import network_scenario
 
@@ -59,7 +59,7 @@ def main(argv=None) -> int:
     # the offset pass ends where the fit starts; the second pass's chunks come from `progress`
     timed(range_offset, "fit_offset", "offset fit")
     timed(pgp, "with_pair_covariance", "pair covariance")
-    timed(identify, "mask_result", "identifiability mask")
+    timed(masking, "mask_result", "identifiability mask")
     rows = []
     for run in ("cold", "warm"):
         marks.clear()

@@ -175,7 +175,7 @@ def run(method: str, ds):
     name, _, sets = method.partition(":")
     params = dict(kv.split("=", 1) for kv in sets.split(",") if kv)
     if name in ("pgp-grid", "parametric-grid"):  # the estimate with the grid posterior's own covariance
-        from jaxcal.mesh.identify import mask_result
+        from jaxcal.mesh.masking import mask_result
         from jaxcal.mesh.pgp import run_pgp
 
         mode = name.removesuffix("-grid")

@@ -1,5 +1,6 @@
-"""Identifiability from the measured graph (`mesh/identify.py`), the proxy frame of pgp / cf, and the
-CLI's account of nodes not placed (issues #18, #24 item 1)."""
+"""Identifiability from the measured graph (`mesh/identify.py`), the proxy frame of pgp / cf
+(`mesh/frame_choice.py`), and the account of nodes not placed (`mesh/masking.py`, the CLI's; issues #18,
+#24 item 1)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,9 @@ import numpy as np
 import pytest
 
 from conftest import mesh_of, random_layout, run_cli
+from jaxcal.mesh import frame_choice as F
 from jaxcal.mesh import identify as I
+from jaxcal.mesh import masking as M
 from jaxcal.mesh.frame import frame_covariance, to_frame, to_frame_track
 from jaxcal.sim.families import FAMILIES, family_mesh
 
@@ -46,7 +49,7 @@ def test_single_and_two_neighbours_are_not_fixed_with_the_reason():
     b = drop(complete(7), *[(6, k) for k in range(6) if k not in (3, 4)])  # rigid, mirror-ambiguous
     ident = I.identify(b, (0, 1, 2), ids=IDS[:7])
     assert not ident.fixed[6] and ident.reason[6] == "n6 ranges only n3, n4"
-    line = I.describe(ident, IDS[:7], "pgp")
+    line = M.describe(ident, IDS[:7], "pgp")
     assert line.startswith("pgp: 1 of 7 nodes cannot be placed (n6)") and "\n" not in line
 
 
@@ -57,7 +60,7 @@ def test_frame_nodes_follow_their_own_mirror_rule():
     ident = I.identify(a, (0, 1, 2), ids=IDS[:6])
     assert not ident.frame_fixed and ident.fixed.tolist() == [True] * 3 + [False] * 3
     assert ident.mirror == "n2 ranges only n0, n1"
-    assert "frame (n0/n1/n2) has a mirror image (n2 ranges only n0, n1)" in I.describe(ident, IDS[:6])
+    assert "frame (n0/n1/n2) has a mirror image (n2 ranges only n0, n1)" in M.describe(ident, IDS[:6])
     # a1 ranging a0 and one more node: reflected through their line, the frame turns
     ident = I.identify(drop(complete(6), *[(1, k) for k in range(3, 6)]), (0, 1, 2), ids=IDS[:6])
     assert ident.mirror == "n1 ranges only n0, n2" and ident.fixed.tolist() == [True] * 3 + [False] * 3
@@ -88,7 +91,7 @@ def test_frame_node_never_connected_leaves_only_a0():
     a = drop(complete(6), *[(2, k) for k in range(6) if k != 2])
     ident = I.identify(a, (0, 1, 2), ids=IDS[:6])
     assert not ident.frame_fixed and ident.fixed.tolist() == [True, True] + [False] * 4
-    line = I.describe(ident, IDS[:6])
+    line = M.describe(ident, IDS[:6])
     assert "frame (n0/n1/n2) not determined" in line and "n0-n2" in line and "n1-n2" in line
 
 
@@ -133,7 +136,7 @@ def test_families_fix_what_they_should_on_20_seeds(kind):
 
 def test_choose_frame_prefers_fixing_more_nodes():
     ds = family_mesh("a0a1", 0, n_epochs=30)
-    tri, ident = I.choose_frame(ds.range)
+    tri, ident = F.choose_frame(ds.range)
     assert ident.n_fixed == ds.n_nodes and ident.frame_fixed
     assert all(np.isfinite(ds.range[:, i, j]).any() for i, j in itertools.combinations(tri, 2))
 
@@ -244,7 +247,7 @@ def test_undetermined_frame_warning_names_links_and_suggests_a_frame(rng, caplog
     ds, _ = _noisy_mesh(rng, 7, 5, [(2, k) for k in range(7) if k != 2])  # a2 never ranges
     res = Result(ids=ds.node_ids, position=np.zeros((7, 2)), method="cf", dataset="t", frame="anchors:0,1,2")
     with caplog.at_level(logging.WARNING, logger="jaxcal"):
-        out = I.mask_result(res, ds.range)
+        out = M.mask_result(res, ds.range)
     assert np.isfinite(out.position).all(axis=1).tolist() == [True, True] + [False] * 5
     (line,) = [r.getMessage() for r in caplog.records]
     assert "frame (n0/n1/n2) not determined" in line and "n0-n2" in line and "n2 never ranged" in line
@@ -266,8 +269,8 @@ def test_filter_frame_reaches_the_nodes_a_filter_can_localise(rng):
         r[:, i, j] = r[:, j, i] = np.nan
     ds, truth = mesh_of(r, pos), to_frame(pos, 0, 1, 2)
     adj = I.measured_pairs(ds.range)
-    tri = I.filter_frame(ds.range, (0, 1, 2))
-    reach = I.trilateration_reach(adj, tri, 3)
+    tri = F.filter_frame(ds.range, (0, 1, 2))
+    reach = F.trilateration_reach(adj, tri, 3)
     assert tri != (0, 1, 2) and 7 not in tri
     assert reach[:7].all() and not reach[7]
     res, info = pgp.run_pgp(ds, {"cell_m": 1.0})
@@ -286,7 +289,7 @@ def test_apply_says_when_fixed_nodes_are_left_unplaced(rng, caplog):
     import dataclasses
 
     with caplog.at_level(logging.WARNING, logger="jaxcal"):
-        I.apply(dataclasses.replace(res, position=pos), ident)
+        M.apply(dataclasses.replace(res, position=pos), ident)
     lines = [r.getMessage() for r in caplog.records]
     assert len(lines) == 1 and "1 of the 6 nodes the ranges fix left unplaced by the method (n3)" in lines[0]
 
@@ -306,9 +309,9 @@ def test_filter_frame_leaves_a_frame_that_reaches_fewer_fixed_nodes(rng):
     a = drop(a, (3, 2), (4, 0), (5, 1), (6, 2))
     ds, _ = _mesh_of_graph(rng, a, k=5)
     assert I.identify_ranges(ds.range, (0, 1, 2)).frame_fixed
-    assert I.frame_reach(ds.range, (0, 1, 2)) == (7, 3)
-    tri = I.filter_frame(ds.range, (0, 1, 2))
-    assert tri != (0, 1, 2) and I.frame_reach(ds.range, tri) == (7, 7)
+    assert F.frame_reach(ds.range, (0, 1, 2)) == (7, 3)
+    tri = F.filter_frame(ds.range, (0, 1, 2))
+    assert tri != (0, 1, 2) and F.frame_reach(ds.range, tri) == (7, 7)
 
 
 def test_pgp_reports_in_its_own_frame_when_the_configured_one_has_a_mirror_image(rng, caplog):

@@ -373,7 +373,7 @@ class LiveCalibrator:
             track_position=track,
             software=software_version(),
         )
-        from jaxcal.mesh.identify import mask_result
+        from jaxcal.mesh.masking import mask_result
         from jaxcal.mesh.pgp import with_pair_covariance
 
         # as `calibrate --method pgp`: widened to the per-pair systematic errors, and what the ranges

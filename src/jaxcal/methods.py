@@ -4,7 +4,7 @@ Each entry maps a method name to `"module:function"`, imported only when used. A
 the signature `fn(dataset, params: Mapping[str, Any] | None = None, config: str | None = None) -> Result`:
 `params` are overrides of the method's documented defaults (strings from `--set` are cast), `config`
 names a mesh frame configuration (ignored by trajectory methods); `auto` (when the dataset has no
-configuration of that name) is the triple `jaxcal.mesh.identify.choose_frame` picks.
+configuration of that name) is the triple `jaxcal.mesh.frame_choice.choose_frame` picks.
 """
 
 from __future__ import annotations
@@ -95,7 +95,7 @@ def _calibrate(dataset, method: str, params, config, progress):
     kind = "mesh" if isinstance(dataset, MeshDataset) else "trajectory"
     fn = get_method(kind, method)
     if kind == "mesh" and config == "auto":  # the best-connected, best-conditioned triple
-        from jaxcal.mesh.identify import with_auto_config
+        from jaxcal.mesh.frame_choice import with_auto_config
 
         dataset, _ = with_auto_config(dataset)
     if progress is not None and kind == "mesh" and method in WITH_PROGRESS:

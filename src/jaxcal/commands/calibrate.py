@@ -71,7 +71,7 @@ def run(args) -> int:
 
     mesh = isinstance(ds, MeshDataset)
     if mesh and args.config == "auto":
-        from jaxcal.mesh.identify import with_auto_config
+        from jaxcal.mesh.frame_choice import with_auto_config
 
         ds, tri = with_auto_config(ds)
         say(args, "config auto: " + "/".join(ds.node_ids[i] for i in tri) + f" (nodes {tri[0]}, {tri[1]}, {tri[2]})")

@@ -180,7 +180,7 @@ def place_epochs(
 def _proxy(range_m, dist, track, anchors, p: ClosedFormParams, n_proxy: int = 3):
     """Track and final positions from other frames where the configuration's own cannot be built.
 
-    Up to `n_proxy` well-connected triples (`identify.choose_frame`, best first) are tried: every epoch
+    Up to `n_proxy` well-connected triples (`frame_choice.choose_frame`, best first) are tried: every epoch
     is placed in the triple's frame by the same rule, the per-node medians are taken there, and the
     triple whose medians best reproduce the median ranges of the pairs touching a0, a1, a2 is preferred
     (the frame is only as good as those three nodes). Epochs without their own frame, and own epochs
@@ -195,7 +195,7 @@ def _proxy(range_m, dist, track, anchors, p: ClosedFormParams, n_proxy: int = 3)
         per-node median of the track stands) or no proxy places a0, a1 and a2.
     """
     from jaxcal.mesh.frame import to_frame, to_frame_track
-    from jaxcal.mesh.identify import choose_frame
+    from jaxcal.mesh.frame_choice import choose_frame
 
     a0, a1, a2 = anchors
     own = np.isfinite(track[:, [a1, a2]]).all(axis=(1, 2))
@@ -296,6 +296,6 @@ def calibrate(
         track_time=dataset.time,
         track_position=track,
     )
-    from jaxcal.mesh.identify import mask_result
+    from jaxcal.mesh.masking import mask_result
 
     return mask_result(res, dataset.range)

@@ -72,12 +72,12 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
         A `Result`: refined `position` and `covariance`, PGP's per-epoch track.
     """
     from jaxcal import __version__
-    from jaxcal.mesh import identify
+    from jaxcal.mesh import masking
 
     p_over, b_over = split_params(params)
     b = with_overrides(batch.BatchParams(), b_over)
     anchors = dataset.config(config)
-    empty = identify.undetermined_frame_result(dataset, anchors, "pgp+batch", b.dim)
+    empty = masking.undetermined_frame_result(dataset, anchors, "pgp+batch", b.dim)
     if empty is not None:  # the ranges do not fix the frame: nothing to fit (one warning line)
         return empty
     # the track and final positions only: PGP's posterior grids (with node-local grids an (N, n, n)
@@ -116,4 +116,4 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None) -> R
         track_position=track_position,
         software=f"jaxcal {__version__}",
     )
-    return identify.mask_result(res, dataset.range)  # what the ranges cannot fix: NaN rows + a warning
+    return masking.mask_result(res, dataset.range)  # what the ranges cannot fix: NaN rows + a warning

@@ -28,7 +28,7 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None, prog
     cannot fix in the frame (`identify.py`) are NaN rows, named in one warning line.
 
     `progress`: optional callback called with the epochs done since its last call."""
-    from jaxcal.mesh.identify import mask_result
+    from jaxcal.mesh.masking import mask_result
 
     res = run_pgp(dataset, params, config, mode="parametric", progress=progress, posterior=False)[0]
     return mask_result(with_pair_covariance(res, dataset.range), dataset.range)

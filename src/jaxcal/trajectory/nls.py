@@ -407,9 +407,12 @@ def calibrate(dataset, params=None, config=None) -> Result:
         raise JaxcalError(
             f"parameter cov_cells: must be a number >= 0 (cells along the route's box; 0 = none), got {p.cov_cells}"
         )
-    groups, info = prepare_offset(dataset, p)
+    # the route cells enter only the covariances below: the fit runs with their defaults, so a change of
+    # cells reuses its compiled programs (they are static fields of `p`)
+    fit_p = eqx.tree_at(lambda q: (q.cov_cell_m, q.cov_cells), p, (NLSParams.cov_cell_m, NLSParams.cov_cells))
+    groups, info = prepare_offset(dataset, fit_p)
 
-    (est, cov, bias, codes), codes, steps = solve_all_checked(groups, p)
+    (est, cov, bias, codes), codes, steps = solve_all_checked(groups, fit_p)
     cov = cell_covariances(groups, np.asarray(est), np.asarray(bias), np.asarray(cov), p)
     info = dict(info, bias_m=[float(b) for b in bias])
     hint = f"raise max_steps (now {p.max_steps}; retried with {steps}) or n_irls (now {p.n_irls})"

@@ -457,11 +457,11 @@ def calibrate(
         A `Result` with final positions and covariances in the a0/a1/a2 frame, no track.
     """
     from jaxcal import __version__
-    from jaxcal.mesh import identify
+    from jaxcal.mesh import masking
 
     p = with_overrides(BatchParams(), params)
     anchors = dataset.config(config)
-    empty = identify.undetermined_frame_result(dataset, anchors, "batch", p.dim, as_dict(p))
+    empty = masking.undetermined_frame_result(dataset, anchors, "batch", p.dim, as_dict(p))
     if empty is not None:  # the ranges do not fix the frame: nothing to fit (one warning line)
         return empty
     sol = solve(dataset.range, anchors, p, dataset.node_ids, progress=progress)
@@ -483,4 +483,4 @@ def calibrate(
         software=f"jaxcal {__version__}",
     )
     # nodes the measured graph cannot fix (one neighbour, a flexible part) become NaN rows + a warning
-    return identify.mask_result(res, dataset.range)
+    return masking.mask_result(res, dataset.range)

@@ -28,7 +28,7 @@ Choices the paper leaves open (documented here, recorded in the result's `params
 Beyond the paper (issue #18): when a frame pair (a0-a1, a0-a2, a1-a2) is never measured, or only late,
 the paper's rule never localises a1 (or a2) and hence nothing after it, although the network may fix
 every node. `frame="auto"` (default) then runs the filter in the frame of the best-connected,
-best-conditioned triple whose pairs are measured (`identify.filter_frame`) and moves every epoch's
+best-conditioned triple whose pairs are measured (`frame_choice.filter_frame`) and moves every epoch's
 estimates into the configuration's frame through that epoch's a0, a1, a2 estimates (the final
 covariance to first order, `frame.frame_covariance`); `PGPInfo.frame` names the grids' frame. Where the
 configuration's pairs are measured early the filter is the paper's, unchanged. `calibrate` then sets the

@@ -310,16 +310,16 @@ def _run_local(dataset: MeshDataset, params: PGPParams, a, b, local, progress, p
 def _filter_anchors(dataset: MeshDataset, anchors, mode: str, min_refs: int = 3, say: str = "") -> tuple[int, int, int]:
     """The frame the filter runs in (`PGPParams.frame`: "auto" or "proxy"); `say`: the method's name, to
     say in one line (logger "jaxcal", info) why it is not the configuration's frame."""
-    from jaxcal.mesh import identify
+    from jaxcal.mesh import frame_choice
 
     if mode == "proxy":
-        best = identify.choose_frame(dataset.range, min_refs=min_refs, need=anchors)
+        best = frame_choice.choose_frame(dataset.range, min_refs=min_refs, need=anchors)
         b = anchors if best is None else best[0]
     else:
-        b = identify.filter_frame(dataset.range, anchors, min_refs=min_refs)
+        b = frame_choice.filter_frame(dataset.range, anchors, min_refs=min_refs)
     if say and b != tuple(anchors):
         ids = dataset.node_ids
-        own, tri = (identify.frame_reach(dataset.range, t, min_refs) for t in (anchors, b))
+        own, tri = (frame_choice.frame_reach(dataset.range, t, min_refs) for t in (anchors, b))
         logging.getLogger("jaxcal").info(
             "%s: the filter runs in frame %s, not %s (from it the filter reaches %d of the %d nodes the ranges "
             "fix there; from %s %d of %d)",
@@ -396,7 +396,7 @@ def calibrate(dataset: MeshDataset, params=None, config: str | None = None, prog
     ranges cannot fix in the frame (`identify.py`) are NaN rows, named in one warning line.
 
     `progress`: optional callback called with the epochs done since its last call."""
-    from jaxcal.mesh.identify import mask_result
+    from jaxcal.mesh.masking import mask_result
 
     res = run_pgp(dataset, params, config, mode="pgp", progress=progress, posterior=False)[0]
     return mask_result(with_pair_covariance(res, dataset.range), dataset.range)
@@ -414,7 +414,7 @@ def with_pair_covariance(res: Result, range_m: np.ndarray) -> Result:
     out. The grid's own error (its cells, the filter's lag) is in the displacement term, so the grid
     covariance is no longer a floor (the union with it, and each node's own displacement, put the truth
     inside every ellipse by construction: coverage 100 %, NEES/dof 0.65-0.74). Nodes the pairs do not fix
-    keep the grid covariance (`identify.mask_result` decides what is reported)."""
+    keep the grid covariance (`masking.mask_result` decides what is reported)."""
     from jaxcal.mesh.pair_covariance import position_covariance
 
     anchors = res.frame_anchors()

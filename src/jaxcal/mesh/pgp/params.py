@@ -76,7 +76,7 @@ class PGPParams(eqx.Module):
         nlos_mean_m: mean NLOS excess range [m] of the mixture (default 1 m: Table I's NLOS
             median error 0.69 m; its mean 3.78 m is driven by rare long outliers, which `p_out`
             covers).
-        frame: which frame the filter runs in (`identify.filter_frame`): "auto" (default) the
+        frame: which frame the filter runs in (`frame_choice.filter_frame`): "auto" (default) the
             configuration's own when its three pairs are measured early (the paper's rule), else the
             best-connected triple, the track then moved into the configuration's frame epoch by
             epoch; "direct": always the configuration's own (the paper; a1 without a range to a0
