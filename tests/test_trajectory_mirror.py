@@ -81,19 +81,25 @@ def test_profile_widens_the_covariance_to_hold_what_fits_as_well(rng):
         assert res.params["info_mirror_ambiguous"] == ["a0"]
 
 
-def test_nan_height_horizontal_ellipse_holds_the_fit_at_every_height_near_the_plane(rng):
+def test_nan_height_horizontal_ellipse_holds_the_fit_at_every_height_near_the_plane(rng, monkeypatch):
     """Where the mirror check leaves the height NaN, the horizontal fit depends on the height the ranges cannot
     tell (on a 15 % slope the mirror is 0.44 m off horizontally). Slow reference: explicit SciPy refits of
     the in-plane position and bias at fixed distances u from the path's plane (Cauchy loss at the check's
     scale), at heights between the profile's grid points; each one's horizontal position lies inside the
-    reported 95 % ellipse (mirror step 5), and the covariance stays symmetric PSD."""
+    reported 95 % ellipse (mirror step 5), and the covariance stays symmetric PSD. The envelope takes the
+    inner span's fits only (the `mirror_profile` fits to |u0| + 1 m), not the outer ones that reach as far
+    as the covariance (tenth round)."""
     from scipy.optimize import least_squares
     from scipy.stats import chi2
 
     from jaxcal.trajectory import mirror
 
+    calls = []
+    envelope = mirror.height_envelope
+    monkeypatch.setattr(mirror, "height_envelope", lambda d: calls.append(np.array(d)) or envelope(d))
     ds = sloped_campaign(int(rng.integers(1 << 30)), noise_m=0.05 + 0.1 * rng.random())
     res = nls.calibrate(ds)
+    assert len(calls) == 1 and 0 < calls[0].shape[0] <= nls.NLSParams().mirror_profile
     assert res.params["info_mirror_ambiguous"] == ["a0"] and np.isnan(res.position[0, 2])
     cov = res.covariance[0, :2, :2]
     assert np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov).min() > 0

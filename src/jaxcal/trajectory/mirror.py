@@ -51,9 +51,13 @@ a third of the anchors, height errors of 2-5 m with predicted sd of 0.05-0.3 m).
    `mirror_min_sep_m` from the estimate, leaves the height NaN as in step 3. A
    planar path (`is_planar`: no side test) gets the profile on its conventional side (`side`) only.
 5. Where the height is left NaN (steps 3 or 4), the horizontal fit depends on the height the ranges cannot
-   tell: the fit at every height of the profile's span is as good an answer. The horizontal covariance gets
-   `height_envelope` of their shifts from the estimate added (each shift on or inside the 95 % ellipse of
-   the added part), so the 2-D ellipse holds the anchor whatever its height in the span. Measured on the
+   tell: the fit at every height of the profile's inner span (the `mirror_profile` fits out to |u| of the
+   estimate + 1 m: its mirror image and a metre beyond, from the fit alone) is as good an answer. The
+   horizontal covariance gets `height_envelope` of their shifts from the estimate added (each shift on or
+   inside the 95 % ellipse of the added part), so the 2-D ellipse holds the anchor whatever its height in
+   that span. The outer points are left out of it: for a height the ranges cannot fix they reach as far as
+   the covariance does (up to the longest range), at heights the ranges reject (time-clustered z 4-6), and
+   their shifts made the ellipse metres wide for decimetre errors (tenth round, trajectory). Measured on the
    development campaigns (even seeds 0-38, no drift): 5 of the 11 anchors outside their ellipse were such
    NaN heights, 0.56-0.92 m off for 0.22-0.45 m predicted, whose true height's profile fit scored z = 2.2-3.4
    (above `mirror_z`, so step 4 did not count it); with step 5 all five are inside.
@@ -386,9 +390,12 @@ def _apply_profile(out: SideCheck, todo, planar, data, fit, p) -> None:
             out.ambiguous[a] = True
             best = np.flatnonzero(other)[np.argmin(z_side[other])]
             out.other[a], out.z[a], out.checked[a] = pts[k][best], float(z_side[best]), True
-        # step 5: a NaN height; the horizontal ellipse holds the horizontal fit at every height of the span
-        if out.ambiguous[a] and converged.any():
-            out.covariance[a, :2, :2] += height_envelope(pts[k][converged, :2] - out.position[a, :2])
+        # step 5: a NaN height; the horizontal ellipse holds the horizontal fit at every height of the inner span
+        # (the outer points reach as far as the covariance, which for a height the ranges cannot fix is the
+        # longest range: their fits, rejected by the ranges, made the envelope metres wide; tenth round)
+        span = converged & inner_k
+        if out.ambiguous[a] and span.any():
+            out.covariance[a, :2, :2] += height_envelope(pts[k][span, :2] - out.position[a, :2])
             out.widened[a] = True
 
 
