@@ -97,7 +97,9 @@ def test_a_layout_without_a_mirror_is_left_alone(rng):
 
 
 @pytest.mark.parametrize("locked", [False, True])
-def test_a_part_hinged_on_two_nodes_is_unplaced_with_one_warning_line(rng, caplog, locked):
+def test_a_part_hinged_on_two_nodes_gets_a_covariance_over_both_images(rng, caplog, locked):
+    from scipy.stats import chi2
+
     truth, z, _ = _scene(rng, cross=False)
     x = _mirrored(truth, rng) if locked else truth + rng.normal(0.0, 0.2, truth.shape)
     x[0], x[1, 1] = 0.0, 0.0
@@ -105,10 +107,22 @@ def test_a_part_hinged_on_two_nodes_is_unplaced_with_one_warning_line(rng, caplo
     assert out.ambiguous[PART].all() and not out.ambiguous[:5].any()
     ranges = np.repeat(z[None], 3, axis=0)
     ids = tuple(f"n{k}" for k in range(len(x)))
-    cov = np.repeat(np.eye(2)[None] * 0.01, len(x), axis=0)
+    cov = np.repeat(np.eye(2)[None] * 0.3**2, len(x), axis=0)  # a pair-level width (0.3 m a coordinate)
     with caplog.at_level(logging.INFO, logger="jaxcal"):
         pos, c = mirror.resolve_mirrors(ranges, ids, ANCHORS, x, cov, 0.3)
-    assert np.isnan(pos[PART]).all() and np.isnan(c[PART]).all()
-    np.testing.assert_array_equal(pos[:5], x[:5])
+        wide = mirror.span_undecided(ranges, ids, ANCHORS, pos, c, 0.3)
+    np.testing.assert_array_equal(pos, x)  # no image is preferred: nothing moves
+    np.testing.assert_array_equal(wide[:5], cov[:5])
+    # both images inside the 95 % ellipse: the node's own place and the true part reflected through the hinge
+    part = np.zeros(len(x), bool)
+    part[PART] = True
+    other = mirror.reflect(truth, part, 3, 4)
+    if locked:
+        other = truth
+    for k in PART:
+        e = other[k] - x[k]
+        assert np.linalg.norm(e) > 2.0  # a distinct image
+        assert e @ np.linalg.solve(wide[k], e) < chi2.ppf(0.95, 2)
+        assert e @ np.linalg.solve(cov[k], e) > 40.0  # which the covariance alone would exclude
     warned = [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(warned) == 1 and "n5, n6, n7" in warned[0].getMessage()

@@ -18,7 +18,7 @@ from jaxcal.errors import JaxcalError
 from jaxcal.mesh import grid as G
 from jaxcal.mesh import local as L
 from jaxcal.mesh.pgp.epochs import run_chunked
-from jaxcal.mesh.pgp.mirror import resolve_mirrors
+from jaxcal.mesh.pgp.mirror import resolve_mirrors, span_undecided
 from jaxcal.mesh.pgp.params import OFFSET_EPOCHS, PGPParams, validate_params
 from jaxcal.mesh.pgp.setup import filter_params, neighbour_sets, node_order, prepare, symmetric_ranges
 from jaxcal.mesh.pgp.state import PGPInfo
@@ -201,8 +201,8 @@ def _run_offset(
 
 def _mirror_checked(dataset: MeshDataset, params: PGPParams, a, final, cov, method: str):
     """(final, cov) after the mirror check of `params.mirror` (`mirror.resolve_mirrors`): parts of the
-    layout the filter locked in a mirror image moved to the image the ranges prefer, nodes whose image the
-    ranges leave undecided unplaced. The track stays the filter's."""
+    layout the filter locked in a mirror image moved to the image the ranges prefer. The track stays the
+    filter's."""
     if params.mirror == "off":
         return final, cov
     return resolve_mirrors(dataset.range, dataset.node_ids, a, final, cov, params.sigma_r, method)
@@ -426,7 +426,9 @@ def with_pair_covariance(res: Result, range_m: np.ndarray) -> Result:
     out. The grid's own error (its cells, the filter's lag) is in the displacement term, so the grid
     covariance is no longer a floor (the union with it, and each node's own displacement, put the truth
     inside every ellipse by construction: coverage 100 %, NEES/dof 0.65-0.74). Nodes the pairs do not fix
-    keep the grid covariance (`identify.mask_result` decides what is reported)."""
+    keep the grid covariance (`identify.mask_result` decides what is reported). Nodes whose mirror image the
+    ranges leave undecided get a covariance that spans both images (`mirror.span_undecided`, unless
+    `mirror=off`)."""
     from jaxcal.mesh.pair_covariance import position_covariance
 
     anchors = res.frame_anchors()
@@ -443,4 +445,8 @@ def with_pair_covariance(res: Result, range_m: np.ndarray) -> Result:
     cov = np.array(res.covariance, dtype=np.float64, copy=True)
     fixed = np.isfinite(pc).all(axis=(1, 2)) & np.isfinite(cov).all(axis=(1, 2))
     cov[fixed] = pc[fixed]
+    if res.params.get("mirror", "check") != "off":
+        cov = span_undecided(
+            range_m, res.ids, anchors, res.position, cov, float(res.params.get("sigma_r", 0.3)), res.method
+        )
     return eqx.tree_at(lambda r: r.covariance, res, cov)

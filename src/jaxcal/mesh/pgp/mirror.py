@@ -18,8 +18,9 @@ decide. The best reflection is kept while it lowers the cost by more than `margi
 cost is the negative log likelihood of the pair medians up to a constant, so the kept image is at least
 19 times as likely), both layouts polished first (`pair_covariance.polish`: the filter's cells and lag
 are not the ranges' optimum). Nodes that some reflection moves at a cost rise below `margin` have two
-images the ranges do not tell apart (a rigid part hinged on two nodes): they are returned as ambiguous
-and `run_pgp` leaves them unplaced (NaN) with one warning line.
+images the ranges do not tell apart (a rigid part hinged on two nodes): they are returned as ambiguous,
+and `with_pair_covariance` widens their covariance over both images with one warning line
+(`span_undecided`).
 
 Cost: host-side NumPy after the filter (not in the scan): one cost per candidate over the pairs, and a
 few polishes of the N-node layout."""
@@ -40,6 +41,7 @@ __all__ = [
     "reflect",
     "resolve_mirrors",
     "robust_cost",
+    "span_undecided",
 ]
 
 MARGIN = math.log(19.0)
@@ -66,6 +68,7 @@ class MirrorCheck:
         moves: the moves applied, in order: a `Flip`, or "refit" (the MDS-started fit, `mds_start`).
         moved: (N,) bool, nodes the kept moves placed elsewhere (by more than `same_m`).
         ambiguous: (N,) bool, nodes with a second image within `margin` of the kept one.
+        spread: (N, 2, 2) [m^2] the sum over those images of d d^T, d a node's move to the image (0 elsewhere).
         gain: cost decrease [nats] of each applied move; `rival`: the smallest cost rise of a distinct
             image that moves an ambiguous node (inf when none).
     """
@@ -75,6 +78,7 @@ class MirrorCheck:
     moves: tuple[Flip | str, ...]
     moved: np.ndarray
     ambiguous: np.ndarray
+    spread: np.ndarray
     gain: tuple[float, ...]
     rival: float
 
@@ -205,7 +209,7 @@ def check_mirrors(
     free = _free(placed, anchors)
     none = np.zeros(n, dtype=bool)
     if iu.size == 0 or placed.sum() < 4 or not placed[list(anchors[:2])].all():
-        return MirrorCheck(x, x, (), none, none, (), math.inf)
+        return MirrorCheck(x, x, (), none, none, np.zeros((n, 2, 2)), (), math.inf)
     flip_y = np.array([1.0, -1.0])
 
     def polished(y):  # the ranges' local optimum from y (a2 in y >= 0) and its cost
@@ -249,17 +253,21 @@ def check_mirrors(
         base = cost
         found = rivals(at, False)
     ambiguous = np.zeros(n, dtype=bool)
+    spread = np.zeros((n, 2, 2))
     rival = math.inf
     for _, w, cost in found:
         if cost - base < margin:
-            ambiguous |= apart(w, at)
+            far = apart(w, at)
+            ambiguous |= far
+            d = np.where(far[:, None], w - at, 0.0)
+            spread += d[:, :, None] * d[:, None, :]
             rival = min(rival, cost - base)
     moved = apart(at, at0) if moves else none
     # a moved node keeps the filter's own offset from the ranges' fit (its cells, its lag): the network
     # displacement term of `with_pair_covariance` measures that error, and a node placed on the fit itself
     # would report none (weak seed 11, every node moved: coverage 100 % -> 57 % at the fit)
     y = np.where(moved[:, None], at + (x - at0), x)
-    return MirrorCheck(y, at, tuple(moves), moved, ambiguous, tuple(gains), rival)
+    return MirrorCheck(y, at, tuple(moves), moved, ambiguous, spread, tuple(gains), rival)
 
 
 def resolve_mirrors(
@@ -269,9 +277,8 @@ def resolve_mirrors(
 
     Nodes a kept move placed elsewhere take their position in the ranges' fit of the kept image plus their
     offset from the fit of the filter's image (`MirrorCheck.position`; their grid covariance is kept:
-    `with_pair_covariance` replaces it where the pairs fix the node); nodes the ranges fix (`identify`)
-    whose image is undecided become NaN rows. Each outcome is one log line (logger "jaxcal": info for a
-    move, warning for undecided nodes).
+    `with_pair_covariance` replaces it where the pairs fix the node, and widens it over an undecided
+    image, `span_undecided`). A move is one log line (logger "jaxcal", info).
 
     Args:
         range_m: (K, N, N) ranges [m]. ids: (N,) node ids. anchors: (a0, a1, a2) of `final`'s frame.
@@ -283,15 +290,10 @@ def resolve_mirrors(
     """
     import logging  # noqa: PLC0415
 
-    from jaxcal.mesh.identify import identify_ranges  # noqa: PLC0415
-    from jaxcal.mesh.pgp.setup import symmetric_ranges  # noqa: PLC0415
-    from jaxcal.mesh.range_offset import pair_medians  # noqa: PLC0415
-
     final, cov = np.array(final, dtype=np.float64), np.array(cov, dtype=np.float64)
     if final.shape[1] != 2:
         return final, cov
-    z = pair_medians(symmetric_ranges(np.asarray(range_m, dtype=np.float64)))
-    mc = check_mirrors(final, z, anchors, scale)
+    mc = check_mirrors(final, _medians(range_m), anchors, scale)
     log = logging.getLogger("jaxcal")
 
     def names(mask):
@@ -308,16 +310,51 @@ def resolve_mirrors(
             how,
         )
         final[mc.moved] = mc.position[mc.moved]
-    undecided = mc.ambiguous & identify_ranges(range_m, anchors, ids=ids).fixed & np.isfinite(final).all(axis=1)
+    return final, cov
+
+
+def _medians(range_m: np.ndarray) -> np.ndarray:
+    """(N, N) pair medians of (K, N, N) ranges, the two directions of a pair averaged per epoch first."""
+    from jaxcal.mesh.pgp.setup import symmetric_ranges  # noqa: PLC0415
+    from jaxcal.mesh.range_offset import pair_medians  # noqa: PLC0415
+
+    return pair_medians(symmetric_ranges(np.asarray(range_m, dtype=np.float64)))
+
+
+def span_undecided(
+    range_m: np.ndarray, ids, anchors, position: np.ndarray, cov: np.ndarray, scale: float, method: str = "pgp"
+) -> np.ndarray:
+    """`cov` widened, for every node the ranges fix (`identify`) but whose image they leave undecided
+    (`check_mirrors`, no move), by d d^T summed over the undecided images (d the node's move to the image):
+    the 95 % ellipse then holds both places, each with the node's own width (the other at NEES <= 1 along
+    d), so such a node is never reported confidently. One warning line (logger "jaxcal") names them.
+
+    Args:
+        range_m: (K, N, N) ranges [m]. ids: (N,) node ids. anchors: (a0, a1, a2) of `position`'s frame.
+        position: (N, 2) the reported layout [m]. cov: (N, 2, 2) its covariance [m^2].
+        scale: Cauchy scale [m] (`sigma_r`). method: the name in the log line.
+
+    Returns:
+        (N, 2, 2) a new array.
+    """
+    import logging  # noqa: PLC0415
+
+    from jaxcal.mesh.identify import identify_ranges  # noqa: PLC0415
+
+    cov = np.array(cov, dtype=np.float64)
+    if position.shape[1] != 2:
+        return cov
+    mc = check_mirrors(position, _medians(range_m), anchors, scale, rounds=0)
+    ok = np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(position).all(axis=1)
+    undecided = mc.ambiguous & identify_ranges(range_m, anchors, ids=ids).fixed & ok
     if undecided.any():
-        log.warning(
-            "%s: %s have two images the ranges do not tell apart (cost difference %.1f < %.1f nats): left "
-            "unplaced (NaN)",
+        cov[undecided] = cov[undecided] + mc.spread[undecided]
+        logging.getLogger("jaxcal").warning(
+            "%s: %s have two images the ranges do not tell apart (cost difference %.1f < %.1f nats): their "
+            "covariance spans both",
             method,
-            names(undecided),
+            ", ".join(ids[k] for k in np.flatnonzero(undecided)),
             mc.rival,
             MARGIN,
         )
-        final[undecided] = np.nan
-        cov[undecided] = np.nan
-    return final, cov
+    return cov
