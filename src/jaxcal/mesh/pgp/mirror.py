@@ -63,7 +63,7 @@ class MirrorCheck:
 
     Attributes:
         position: (N, 2) the input, but nodes the kept moves placed elsewhere (`moved`) at their position in
-            `fit` plus the input's offset from the fit of its own image.
+            `fit` plus the input's offset from the fit of its own image (none where that exceeds `same_m`).
         fit: (N, 2) the ranges' polished fit of the kept image (a2 at y >= 0).
         moves: the moves applied, in order: a `Flip`, or "refit" (the MDS-started fit, `mds_start`).
         moved: (N,) bool, nodes the kept moves placed elsewhere (by more than `same_m`).
@@ -262,11 +262,16 @@ def check_mirrors(
             d = np.where(far[:, None], w - at, 0.0)
             spread += d[:, :, None] * d[:, None, :]
             rival = min(rival, cost - base)
-    moved = apart(at, at0) if moves else none
     # a moved node keeps the filter's own offset from the ranges' fit (its cells, its lag): the network
     # displacement term of `with_pair_covariance` measures that error, and a node placed on the fit itself
-    # would report none (weak seed 11, every node moved: coverage 100 % -> 57 % at the fit)
-    y = np.where(moved[:, None], at + (x - at0), x)
+    # would report none (weak seed 11, every node moved: coverage 100 % -> 57 % at the fit). An offset
+    # beyond same_m is no such error (the polish itself left the filter's place, weaknodes seed 0
+    # parametric: 22 m): that node takes the fit.
+    off = x - at0
+    off = np.where((np.linalg.norm(off, axis=1) > same_m)[:, None], 0.0, off)
+    y = at + off
+    moved = apart(y, x) if moves else none
+    y = np.where(moved[:, None], y, x)
     return MirrorCheck(y, at, tuple(moves), moved, ambiguous, spread, tuple(gains), rival)
 
 
