@@ -180,6 +180,7 @@ def check_mirrors(
     rounds: int = 4,
     polish_top: int = 4,
     same_m: float = 1.0,
+    far_m: float = 5.0,
 ) -> MirrorCheck:
     """Move mirror-locked parts of a 2-D layout to their other image and mark the nodes whose image is
     undecided (module docstring).
@@ -193,6 +194,8 @@ def check_mirrors(
         rounds: at most this many moves applied.
         polish_top: distinct reflections (the lowest unpolished costs first) compared after polishing.
         same_m: a polished candidate within this of the polished layout, every node, is the same image.
+        far_m: a node this far from the fit of its own layout's image takes the fit (half the filter's
+            10 m window: beyond it the distance is no cell or lag error of the filter).
 
     Returns:
         `MirrorCheck`.
@@ -267,10 +270,13 @@ def check_mirrors(
     # would report none (weak seed 11, every node moved: coverage 100 % -> 57 % at the fit). An offset
     # beyond same_m is no such error (the polish itself left the filter's place, weaknodes seed 0
     # parametric: 22 m): that node takes the fit.
+    # A node more than far_m from the fit of the filter's own image (its polish alone left the filter's
+    # place: nlos seed 0 parametric, 22 m) is not in that image at all: it takes the fit even without a move.
     off = x - at0
-    off = np.where((np.linalg.norm(off, axis=1) > same_m)[:, None], 0.0, off)
+    dist = np.where(placed, np.linalg.norm(off, axis=1), 0.0)
+    off = np.where((dist > same_m)[:, None], 0.0, off)
     y = at + off
-    moved = apart(y, x) if moves else none
+    moved = apart(y, x) if moves else dist > far_m
     y = np.where(moved[:, None], y, x)
     return MirrorCheck(y, at, tuple(moves), moved, ambiguous, spread, tuple(gains), rival)
 
@@ -307,12 +313,12 @@ def resolve_mirrors(
     if mc.moved.any():
         how = "; ".join(m if isinstance(m, str) else f"reflection through {ids[m.p]}-{ids[m.q]}" for m in mc.moves)
         log.info(
-            "%s: %s lay in a mirror image the ranges reject (robust cost %.1f nats lower after %s): moved to the "
-            "ranges' fit",
+            "%s: %s moved to the ranges' fit (%s)",
             method,
             names(mc.moved),
-            sum(mc.gain),
-            how,
+            f"a mirror image the ranges reject: robust cost {sum(mc.gain):.1f} nats lower after {how}"
+            if mc.moves
+            else "more than 5 m from the ranges' fit of the filter's layout",
         )
         final[mc.moved] = mc.position[mc.moved]
     return final, cov
