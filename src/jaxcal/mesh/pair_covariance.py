@@ -377,9 +377,6 @@ def robust_fit(
     moved into the frame of `anchors`), whichever ends at the lower robust cost. From `x` alone, an estimate
     that is metres off in a wrong basin (a filter that diverged, a node on its mirror side) would be
     polished into that basin's local minimum, and its displacement from "the fit" would say it is right."""
-    from scipy.sparse.csgraph import shortest_path  # noqa: PLC0415
-
-    from jaxcal.mesh.frame import to_frame  # noqa: PLC0415
 
     def cost(y):
         e = np.linalg.norm(y[i] - y[j], axis=1) - z
@@ -392,6 +389,21 @@ def robust_fit(
         return y
 
     best = fit(x)
+    start = mds_start(x, i, j, z, anchors)
+    if start is None:
+        return best
+    other = fit(start)
+    return other if cost(other) < cost(best) - 1e-9 * max(1.0, cost(best)) else best
+
+
+def mds_start(x: np.ndarray, i: np.ndarray, j: np.ndarray, z: np.ndarray, anchors) -> np.ndarray | None:
+    """The classical MDS layout of the pair ranges z (pairs i, j; shortest paths for the missing pairs) of
+    the placed rows of `x` (N, D), moved into the frame of `anchors`; NaN rows where `x` has them. None when
+    the placed nodes' graph is not connected or the frame nodes coincide in it."""
+    from scipy.sparse.csgraph import shortest_path  # noqa: PLC0415
+
+    from jaxcal.mesh.frame import to_frame  # noqa: PLC0415
+
     n, d = x.shape
     placed = np.isfinite(x).all(axis=1)
     g = np.zeros((n, n))
@@ -399,7 +411,7 @@ def robust_fit(
     sub = np.flatnonzero(placed)
     dist = shortest_path(g[np.ix_(sub, sub)], method="D", directed=False)
     if not np.isfinite(dist).all():
-        return best
+        return None
     c = np.eye(sub.size) - 1.0 / sub.size
     lam, vec = np.linalg.eigh(-0.5 * c @ (dist * dist) @ c)
     start = np.full_like(x, np.nan)
@@ -407,11 +419,8 @@ def robust_fit(
     try:
         start = to_frame(start, *anchors)
     except (ValueError, ArithmeticError):
-        return best
-    if not np.isfinite(start[sub]).all():
-        return best
-    other = fit(start)
-    return other if cost(other) < cost(best) - 1e-9 * max(1.0, cost(best)) else best
+        return None
+    return start if np.isfinite(start[sub]).all() else None
 
 
 def polish(x: np.ndarray, i: np.ndarray, j: np.ndarray, z: np.ndarray, free: np.ndarray, scale: float) -> np.ndarray:
@@ -420,14 +429,34 @@ def polish(x: np.ndarray, i: np.ndarray, j: np.ndarray, z: np.ndarray, free: np.
     `x`; the other coordinates are kept. Returns `x` unchanged where the fit fails."""
     from scipy.optimize import least_squares  # noqa: PLC0415
 
-    def res(theta):
+    n, d = x.shape
+    col = np.full(n * d, -1)
+    col[free] = np.arange(free.size)
+    rows = np.arange(i.size)
+
+    def full(theta):
         y = x.ravel().copy()
         y[free] = theta
-        y = y.reshape(x.shape)
+        return y.reshape(x.shape)
+
+    def res(theta):
+        y = full(theta)
         return np.linalg.norm(y[i] - y[j], axis=1) - z
 
+    def jac(theta):  # d|y_i - y_j| / dy_i = u = -d/dy_j (analytic: a finite-difference one costs 2 N evaluations)
+        y = full(theta)
+        u = y[i] - y[j]
+        u = u / np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
+        out = np.zeros((i.size, free.size))
+        for a in range(d):
+            for node, sign in ((i, 1.0), (j, -1.0)):
+                c = col[node * d + a]
+                ok = c >= 0
+                np.add.at(out, (rows[ok], c[ok]), sign * u[ok, a])
+        return out
+
     try:
-        sol = least_squares(res, x.ravel()[free], loss="cauchy", f_scale=scale, method="trf", max_nfev=200)
+        sol = least_squares(res, x.ravel()[free], jac=jac, loss="cauchy", f_scale=scale, method="trf", max_nfev=200)
     except (ValueError, np.linalg.LinAlgError):
         return x
     if not np.isfinite(sol.x).all():

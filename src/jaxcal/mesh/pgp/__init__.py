@@ -62,8 +62,9 @@ Modules (one job each; the names below are re-exported here, `from jaxcal.mesh i
 `params` (`PGPParams`, `validate_params`), `state` (the filter's pytrees, `PGPInfo`), `kernels`
 (hypotheses, one node's epoch, the window step `WindowStep`), `epochs` (the epoch scans and their
 drivers), `setup` (ranges, neighbour sets, node order, `prepare`), `stream` (`PGPStream`, `start`,
-`advance`) and `driver` (`run_pgp`, the range-offset pass, node-local runs, `calibrate`,
-`with_pair_covariance`).
+`advance`), `mirror` (after the filter: parts locked in a mirror image moved to the image the ranges prefer,
+undecided images spanned by the covariance; `PGPParams.mirror`) and `driver` (`run_pgp`, the range-offset
+pass, node-local runs, `calibrate`, `with_pair_covariance`).
 """
 
 from jaxcal.mesh.pgp.driver import (
@@ -93,6 +94,7 @@ from jaxcal.mesh.pgp.params import (
     FRAMES,
     GRID_MODES,
     LIKELIHOODS,
+    MIRRORS,
     NUMERIC,
     OFFSET_EPOCHS,
     RANGE_MODELS,
@@ -154,6 +156,7 @@ __all__ = [
     "advance_chunked",
     "run_segmented",
     "BIASES",
+    "MIRRORS",
     "FRAMES",
     "GRID_MODES",
     "LIKELIHOODS",

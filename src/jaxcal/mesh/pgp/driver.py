@@ -18,6 +18,7 @@ from jaxcal.errors import JaxcalError
 from jaxcal.mesh import grid as G
 from jaxcal.mesh import local as L
 from jaxcal.mesh.pgp.epochs import run_chunked
+from jaxcal.mesh.pgp.mirror import resolve_mirrors, span_undecided
 from jaxcal.mesh.pgp.params import OFFSET_EPOCHS, PGPParams, validate_params
 from jaxcal.mesh.pgp.setup import filter_params, neighbour_sets, node_order, prepare, symmetric_ranges
 from jaxcal.mesh.pgp.state import PGPInfo
@@ -113,6 +114,7 @@ def run_pgp(
     if b != a:  # proxy frame: every epoch moved into the configuration's frame by its a0, a1, a2
         final, cov, est = _to_config_frame(final, cov, est, a)
         loc_any = np.isfinite(est).all(axis=2).any(axis=0)
+    final, cov = _mirror_checked(dataset, params, a, final, cov, mode)
     res = _result(dataset, params, mode, a, final, cov, est)
     info = PGPInfo(
         axis_m=np.asarray(cfg.grid.axis(np.float64)),
@@ -197,6 +199,15 @@ def _run_offset(
     return res, dataclasses.replace(info, offset_m=c if np.isfinite(c) else float("nan"))
 
 
+def _mirror_checked(dataset: MeshDataset, params: PGPParams, a, final, cov, method: str):
+    """(final, cov) after the mirror check of `params.mirror` (`mirror.resolve_mirrors`): parts of the
+    layout the filter locked in a mirror image moved to the image the ranges prefer. The track stays the
+    filter's."""
+    if params.mirror == "off":
+        return final, cov
+    return resolve_mirrors(dataset.range, dataset.node_ids, a, final, cov, params.sigma_r, method)
+
+
 def _result(dataset: MeshDataset, params: PGPParams, method: str, a, final, cov, est) -> Result:
     """The `Result` of a filter run: final positions and covariances, the track, in the frame a0, a1, a2 = `a`."""
     return Result(
@@ -272,6 +283,7 @@ def _run_local(dataset: MeshDataset, params: PGPParams, a, b, local, progress, p
     if b != a:
         final, cov, est = _to_config_frame(final, cov, est, a)
         loc_any = np.isfinite(est).all(axis=2).any(axis=0)
+    final, cov = _mirror_checked(dataset, params, a, final, cov, "pgp")
     log = logging.getLogger("jaxcal")
     lost = int(np.asarray(out.lost).sum())
     if lost:  # a just-localised node whose top_k cells still include a far mode of tiny mass
@@ -414,7 +426,9 @@ def with_pair_covariance(res: Result, range_m: np.ndarray) -> Result:
     out. The grid's own error (its cells, the filter's lag) is in the displacement term, so the grid
     covariance is no longer a floor (the union with it, and each node's own displacement, put the truth
     inside every ellipse by construction: coverage 100 %, NEES/dof 0.65-0.74). Nodes the pairs do not fix
-    keep the grid covariance (`masking.mask_result` decides what is reported)."""
+    keep the grid covariance (`masking.mask_result` decides what is reported). Nodes whose mirror image the
+    ranges leave undecided get a covariance that spans both images (`mirror.span_undecided`, unless
+    `mirror=off`)."""
     from jaxcal.mesh.pair_covariance import position_covariance
 
     anchors = res.frame_anchors()
@@ -431,4 +445,8 @@ def with_pair_covariance(res: Result, range_m: np.ndarray) -> Result:
     cov = np.array(res.covariance, dtype=np.float64, copy=True)
     fixed = np.isfinite(pc).all(axis=(1, 2)) & np.isfinite(cov).all(axis=(1, 2))
     cov[fixed] = pc[fixed]
+    if res.params.get("mirror", "check") != "off":
+        cov = span_undecided(
+            range_m, res.ids, anchors, res.position, cov, float(res.params.get("sigma_r", 0.3)), res.method
+        )
     return eqx.tree_at(lambda r: r.covariance, res, cov)

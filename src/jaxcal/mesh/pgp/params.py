@@ -101,6 +101,10 @@ class PGPParams(eqx.Module):
             grids run (`grid_mode`), "none" on the global grid. An unmodelled offset becomes a scale error
             that grows with the site's extent (N = 100: 0.53 -> 0.27 m aligned RMSE, docs' large networks
             page); small sites keep the paper's filter bit for bit.
+        mirror: "check" (default): after the filter, parts of the layout locked in a mirror image are
+            moved to the image the pair medians prefer, and nodes whose image they leave undecided are
+            unplaced (`mirror.py`; issue #24: a part that localised on the wrong side of a hinge early
+            stays there); "off": the filter's layout as it ends.
     """
 
     cell_m: float = 0.5
@@ -131,9 +135,11 @@ class PGPParams(eqx.Module):
     local_m: float = 0.0
     localise_m: float = 2.0
     bias: str = "auto"
+    mirror: str = "check"
 
 
 BIASES = ("auto", "none", "network")
+MIRRORS = ("check", "off")
 # epochs of the first run that `bias="network"` fits the range offset from (the posteriors settle within
 # ~20 epochs at the defaults; N = 100 seed 0 fits the same c to 1e-6 m from 50 epochs as from 200)
 OFFSET_EPOCHS = 50
@@ -191,6 +197,7 @@ def validate_params(params: PGPParams) -> None:
     need(p.frame in FRAMES, f"frame: one of {', '.join(FRAMES)}; got {p.frame!r}")
     need(p.grid_mode in GRID_MODES, f"grid_mode: one of {', '.join(GRID_MODES)}; got {p.grid_mode!r}")
     need(p.bias in BIASES, f"bias: one of {', '.join(BIASES)}; got {p.bias!r}")
+    need(p.mirror in MIRRORS, f"mirror: one of {', '.join(MIRRORS)}; got {p.mirror!r}")
     for k in ("local_m", "localise_m"):
         need(
             math.isfinite(getattr(p, k)) and getattr(p, k) >= 0,
