@@ -22,7 +22,10 @@ Execution (`SweepSpec.execution`, `jaxcal sweep --execution`), chosen per backen
 - "sequential" (auto on CPU): every device runs its runs one after the other, each exactly as a
   single `run_pgp` (`pgp.run_chunked`: the windowed fast path, whose `lax.cond`s stay branches),
   then `reduce_metrics`. A sweep then costs what its runs cost one by one, and its numbers are
-  bit-for-bit those of `run_pgp`. Several local devices run their runs in one thread each.
+  bit-for-bit those of `run_pgp` with `mirror="off"`: a sweep measures the filter, whose final
+  layout is what `tune` differentiates; pgp's mirror check (a host-side search after the filter,
+  `pgp.mirror`, on by default in `calibrate`) is not applied, and the sweep says so in one
+  line. Several local devices run their runs in one thread each.
   Under `vmap` a `cond` whose predicate differs between runs evaluates both branches, i.e. every
   epoch of every run would also pay the full-grid epoch: 10-30x a single run on CPU.
 - "vmap" (auto on GPU/TPU): vmapped batches (the last one padded with copies of a run) sharded
@@ -337,6 +340,14 @@ def build_groups(
             "sweep: %d dataset(s) wider than one node-local grid run as calibrate runs them (node-local "
             "grids, one run at a time): their nlpl is NaN",
             len(local),
+        )
+    if keys and params.mirror != "off":
+        import logging
+
+        logging.getLogger("jaxcal").warning(
+            "sweep: the metrics are the filter's; pgp's mirror check (mirror=%s in calibrate) is not applied "
+            "to sweep runs (set mirror=off to silence this)",
+            params.mirror,
         )
     for members in keys.values():
         grid = max((prepared[d][2].grid for d in members), key=lambda g: g.n_half)
