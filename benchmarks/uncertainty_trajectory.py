@@ -4,7 +4,8 @@ Datasets: the real recordings in ../shared/datasets with anchor truth (hymn-torg
 NLOS Trajectory_A Case_1, cuhksz-planar) and simulated campaigns (`jaxcal.sim.trajectory`, scenario
 `small` over `--sim-seeds`; `--family alternate` (default): odometry drift 0.02 m/sqrt(s) on odd seeds, none on
 even ones; `drift` / `clean`: drift on every seed / on none). `--stated-drift` tells the methods the drift
-(`pose_drift`, `jaxcal.trajectory.pose_error`) where there is one.
+(`pose_drift`, `jaxcal.trajectory.pose_error`) where there is one; otherwise nls estimates it from the ranges
+(`jaxcal.trajectory.drift`; each line's `pose_drift_estimate`), `--no-drift-estimate` turns that off.
 
 Per anchor with a finite estimate: the error e (3-D; split into horizontal and vertical), the NEES
 e^T C^-1 e over the finite coordinates (an unobservable coordinate reported as NaN is left out, and
@@ -16,7 +17,7 @@ over anchors, 3-D over the finite coordinates and horizontal).
 
 Usage:
     python benchmarks/uncertainty_trajectory.py [--methods nls,ls] [--sim-seeds 0-19 | 1,3,5] [--no-real]
-        [--family alternate|drift|clean] [--stated-drift]
+        [--family alternate|drift|clean] [--stated-drift] [--no-drift-estimate]
 """
 
 from __future__ import annotations
@@ -133,18 +134,29 @@ def main(argv=None) -> int:
     ap.add_argument("--no-real", action="store_true")
     ap.add_argument("--family", choices=("alternate", "drift", "clean"), default="alternate")
     ap.add_argument("--stated-drift", action="store_true", help="pass the campaign's drift as pose_drift")
+    ap.add_argument(
+        "--no-drift-estimate", action="store_true", help="estimate_drift=false (main before the 11th round)"
+    )
     args = ap.parse_args(argv)
     logging.getLogger("jaxcal").setLevel(logging.ERROR)
     from jaxcal.methods import calibrate
     from jaxcal.sim.trajectory import simulate
 
     methods = args.methods.split(",")
+    off = {"estimate_drift": False} if args.no_drift_estimate else {}
+
+    def run(ds, m, params):
+        res = calibrate(ds, m, params={**off, **(params or {})} if m == "nls" else params)
+        ln = line(ds.name, m, anchor_figures(res, ds.anchor_truth))
+        ln["pose_drift_used"] = res.params.get("pose_drift")
+        ln["pose_drift_estimate"] = res.params.get("info_pose_drift_estimate")
+        return ln
+
     if not args.no_real:
         for label, load in real_datasets():
             ds = load()
             for m in methods:
-                rows = anchor_figures(calibrate(ds, m), ds.anchor_truth)
-                print(json.dumps(line(label, m, rows)), flush=True)
+                print(json.dumps(dict(run(ds, m, None), dataset=label)), flush=True)
     seeds = [s for part in args.sim_seeds.split(",") for s in _seed_range(part)]
     sims = {m: [] for m in methods}
     for seed in seeds:
@@ -152,8 +164,7 @@ def main(argv=None) -> int:
         ds = simulate("small", seed=seed, drift=drift)
         stated = {"pose_drift": drift} if args.stated_drift and drift > 0 else None
         for m in methods:
-            rows = anchor_figures(calibrate(ds, m, params=stated), ds.anchor_truth)
-            ln = line(f"sim-small-{seed}", m, rows)
+            ln = dict(run(ds, m, stated), dataset=f"sim-small-{seed}")
             sims[m].append(ln)
             print(json.dumps(ln), flush=True)
     for m in methods:

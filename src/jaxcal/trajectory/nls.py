@@ -35,6 +35,7 @@ from jaxcal.errors import JaxcalError
 from jaxcal.params import with_overrides
 from jaxcal.precision import in_float64
 from jaxcal.trajectory.common import TrajectoryParams, finish, multilaterate, report_fits, widen_covariance
+from jaxcal.trajectory.drift import drift_for_covariance
 from jaxcal.trajectory.offset import summary
 from jaxcal.trajectory.poses import estimate_offset_fit, fit_poses, prepare, prepare_poses
 
@@ -84,11 +85,16 @@ class NLSParams(TrajectoryParams):
             `time_offset_s` within +-`max_offset_s`: on by default for `nls` and `gp` (off for `ls`). Chosen on
             the simulated `small` family (even seeds; issue #19): where the clocks agree it changed the
             horizontal error by a median factor of 1.00, with an offset in +-0.3 s it halved it.
+        estimate_drift: where `pose_drift` is not stated (0), estimate the poses' drift intensity from the ranges
+            at the fit (`jaxcal.trajectory.drift`) and propagate it into the covariance as a stated one would
+            be (one line says the value and how much it widened the anchors' sd); a stated `pose_drift` > 0
+            always wins, and false keeps the poses exact. A constant pose shift is not in it (`pose_sd_m`).
         min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s: as for `ls`, and so are
             max_gap_s, time_offset_s, max_offset_s.
     """
 
     estimate_offset: bool = True
+    estimate_drift: bool = True
     loss: str = "cauchy"
     loss_scale_m: float = 0.0
     min_scale_m: float = 0.05
@@ -407,16 +413,22 @@ def calibrate(dataset, params=None, config=None) -> Result:
         raise JaxcalError(
             f"parameter cov_cells: must be a number >= 0 (cells along the route's box; 0 = none), got {p.cov_cells}"
         )
-    # the route cells enter only the covariances below: the fit runs with their defaults, so a change of
-    # cells reuses its compiled programs (they are static fields of `p`)
-    fit_p = eqx.tree_at(lambda q: (q.cov_cell_m, q.cov_cells), p, (NLSParams.cov_cell_m, NLSParams.cov_cells))
+    # the route cells and the drift estimate enter only the covariances below: the fit runs with their defaults,
+    # so a change of them reuses its compiled programs (they are static fields of `p`)
+    fit_p = eqx.tree_at(
+        lambda q: (q.cov_cell_m, q.cov_cells, q.estimate_drift),
+        p,
+        (NLSParams.cov_cell_m, NLSParams.cov_cells, NLSParams.estimate_drift),
+    )
     groups, info = prepare_offset(dataset, fit_p)
 
     (est, cov, bias, codes), codes, steps = solve_all_checked(groups, fit_p)
     cov = cell_covariances(groups, np.asarray(est), np.asarray(bias), np.asarray(cov), p)
     info = dict(info, bias_m=[float(b) for b in bias])
     hint = f"raise max_steps (now {p.max_steps}; retried with {steps}) or n_irls (now {p.n_irls})"
-    return finish(dataset, "nls", p, groups, est, cov, info, report_fits("nls", codes, groups, p, hint))
+    rep = report_fits("nls", codes, groups, p, hint)
+    p, extra = drift_for_covariance(dataset, groups, est, bias, cov, p, "nls")
+    return finish(dataset, "nls", p, groups, est, cov, dict(info, **extra), rep)
 
 
 def solve_all_checked(groups, p: NLSParams, factor: int = 4):
