@@ -5,7 +5,8 @@ NLOS Trajectory_A Case_1, cuhksz-planar) and simulated campaigns (`jaxcal.sim.tr
 `small` over `--sim-seeds`; `--family alternate` (default): odometry drift 0.02 m/sqrt(s) on odd seeds, none on
 even ones; `drift` / `clean`: drift on every seed / on none). `--stated-drift` tells the methods the drift
 (`pose_drift`, `jaxcal.trajectory.pose_error`) where there is one; otherwise nls estimates it from the ranges
-(`jaxcal.trajectory.drift`; each line's `pose_drift_estimate`), `--no-drift-estimate` turns that off.
+(`jaxcal.trajectory.drift`, with `--drift-estimate on`; each line's `pose_drift_estimate` and
+`pose_drift_used`).
 
 Per anchor with a finite estimate: the error e (3-D; split into horizontal and vertical), the NEES
 e^T C^-1 e over the finite coordinates (an unobservable coordinate reported as NaN is left out, and
@@ -17,7 +18,7 @@ over anchors, 3-D over the finite coordinates and horizontal).
 
 Usage:
     python benchmarks/uncertainty_trajectory.py [--methods nls,ls] [--sim-seeds 0-19 | 1,3,5] [--no-real]
-        [--family alternate|drift|clean] [--stated-drift] [--no-drift-estimate]
+        [--family alternate|drift|clean] [--stated-drift] [--drift-estimate on|off]
 """
 
 from __future__ import annotations
@@ -134,16 +135,14 @@ def main(argv=None) -> int:
     ap.add_argument("--no-real", action="store_true")
     ap.add_argument("--family", choices=("alternate", "drift", "clean"), default="alternate")
     ap.add_argument("--stated-drift", action="store_true", help="pass the campaign's drift as pose_drift")
-    ap.add_argument(
-        "--no-drift-estimate", action="store_true", help="estimate_drift=false (main before the 11th round)"
-    )
+    ap.add_argument("--drift-estimate", choices=("on", "off", "default"), default="default", help="nls estimate_drift")
     args = ap.parse_args(argv)
     logging.getLogger("jaxcal").setLevel(logging.ERROR)
     from jaxcal.methods import calibrate
     from jaxcal.sim.trajectory import simulate
 
     methods = args.methods.split(",")
-    off = {"estimate_drift": False} if args.no_drift_estimate else {}
+    off = {} if args.drift_estimate == "default" else {"estimate_drift": args.drift_estimate == "on"}
 
     def run(ds, m, params):
         res = calibrate(ds, m, params={**off, **(params or {})} if m == "nls" else params)

@@ -30,14 +30,14 @@ def _loops(gen, drift, duration_s=300.0, rate_hz=5.0, noise_m=0.08):
 
 
 def test_estimate_recovers_a_known_drift_and_gives_zero_without_one(rng):
-    """At the true anchors (the fit's linearisation point), 300 s of laps: the REML estimate lies within 35 % of
-    the true intensity (0.01 and 0.02 m/sqrt(s); measured over seeds 0-19: 0.73-1.24 x), and below 0.003
-    without drift (measured: 0 on most seeds)."""
+    """At the true anchors (the fit's linearisation point), 200 s of laps, 50 cells: the REML estimate lies within
+    55 % of the true intensity (0.01 and 0.02 m/sqrt(s); measured over seeds 0-19: 0.53-1.27 x), and below 0.003
+    without drift (measured: at most 0.0019)."""
     gen = np.random.default_rng(rng)
     for drift in (0.01, 0.02):
-        est = estimate_drift(_loops(gen, drift), t0=0.0).drift
-        assert abs(est / drift - 1.0) < 0.35, (drift, est)
-    assert estimate_drift(_loops(gen, 0.0), t0=0.0).drift < 0.003
+        est = estimate_drift(_loops(gen, drift, duration_s=200.0), t0=0.0, max_cells=50).drift
+        assert abs(est / drift - 1.0) < 0.55, (drift, est)
+    assert estimate_drift(_loops(gen, 0.0, duration_s=200.0), t0=0.0, max_cells=50).drift < 0.003
 
 
 def _full_reml(anchors, t0, window_s, sigma2, theta, corr_s):
@@ -112,37 +112,3 @@ def test_reml_gradient_equals_finite_differences(rng):
         h[k] = 1e-4 * theta[k]
         fd = (reml_loglik(theta + h, sigma2, y, x, terms) - reml_loglik(theta - h, sigma2, y, x, terms)) / (2 * h[k])
         np.testing.assert_allclose(g[k], fd, rtol=1e-5, atol=1e-6 * abs(fd))
-
-
-def test_nls_widens_by_the_estimated_drift_states_it_and_keeps_positions(caplog):
-    """nls with the default `estimate_drift`: a drift of 0.05 m/sqrt(s) on the poses is found (the upper bound
-    used is positive, the covariance grows by a PSD term, one warning line says so); positions are those of the
-    run without the estimate; a stated `pose_drift` is used as it is."""
-    import logging
-
-    import equinox as eqx
-
-    from jaxcal.trajectory import nls
-    from jaxcal.trajectory.drift import drift_for_covariance
-    from test_nls import lissajous
-
-    ds = lissajous(noise=0.05, seed=3)
-    gen = np.random.default_rng(7)
-    walk = np.cumsum(gen.normal(0.0, 0.05 * np.sqrt(0.05), (ds.pose_time.size, 2)), axis=0)
-    pose = np.asarray(ds.pose_position).copy()
-    pose[:, :2] += walk - walk[0]
-    ds = eqx.tree_at(lambda d: d.pose_position, ds, pose)
-    off = nls.calibrate(ds, {"mirror_profile": 0, "estimate_drift": False})
-    with caplog.at_level(logging.WARNING, logger="jaxcal"):
-        on = nls.calibrate(ds, {"mirror_profile": 0})
-    np.testing.assert_allclose(on.position, off.position)
-    upper = on.params["info_pose_drift_upper"]
-    assert upper >= on.params["info_pose_drift_estimate"] >= 0 and upper > 0.01
-    assert on.params["pose_drift"] == upper
-    assert sum("pose_drift not stated" in r.getMessage() for r in caplog.records) == 1
-    for a in range(3):
-        extra = on.covariance[a] - off.covariance[a]
-        assert np.linalg.eigvalsh(0.5 * (extra + extra.T)).min() > -1e-12 and np.trace(extra[:2, :2]) > 0
-        np.testing.assert_allclose(on.covariance[a], on.covariance[a].T)
-    stated = nls.NLSParams(pose_drift=0.02)
-    assert drift_for_covariance(ds, None, None, None, None, stated, "nls") == (stated, {})

@@ -95,6 +95,39 @@ def test_stated_pose_error_widens_nls_covariance_by_the_propagated_term():
         assert np.linalg.eigvalsh(wide.covariance[a]).min() >= 0
 
 
+def test_nls_widens_by_the_estimated_drift_states_it_and_keeps_positions(caplog):
+    """nls with `estimate_drift` (`jaxcal.trajectory.drift`; here to share the compiled fit of the test above): a
+    drift of 0.05 m/sqrt(s) on the poses is found (the upper bound used is positive, the covariance grows by a PSD
+    term, one warning line says so); positions are those of the run without the estimate; a stated `pose_drift`
+    is used as it is."""
+    import logging
+
+    import equinox as eqx
+
+    from jaxcal.trajectory.drift import drift_for_covariance
+
+    ds = lissajous(noise=0.05, seed=3)
+    gen = np.random.default_rng(7)
+    walk = np.cumsum(gen.normal(0.0, 0.05 * np.sqrt(0.05), (ds.pose_time.size, 2)), axis=0)
+    pose = np.asarray(ds.pose_position).copy()
+    pose[:, :2] += walk - walk[0]
+    ds = eqx.tree_at(lambda d: d.pose_position, ds, pose)
+    off = nls.calibrate(ds, {"mirror_profile": 0})
+    with caplog.at_level(logging.WARNING, logger="jaxcal"):
+        on = nls.calibrate(ds, {"mirror_profile": 0, "estimate_drift": True})
+    np.testing.assert_allclose(on.position, off.position)
+    upper = on.params["info_pose_drift_upper"]
+    assert upper >= on.params["info_pose_drift_estimate"] >= 0 and upper > 0.01
+    assert on.params["pose_drift"] == upper
+    assert sum("pose_drift not stated" in r.getMessage() for r in caplog.records) == 1
+    for a in range(3):
+        extra = on.covariance[a] - off.covariance[a]
+        assert np.linalg.eigvalsh(0.5 * (extra + extra.T)).min() > -1e-12 and np.trace(extra[:2, :2]) > 0
+        np.testing.assert_allclose(on.covariance[a], on.covariance[a].T)
+    stated = nls.NLSParams(pose_drift=0.02, estimate_drift=True)
+    assert drift_for_covariance(ds, None, None, None, None, stated, "nls") == (stated, {})
+
+
 @pytest.mark.parametrize("bad", [{"pose_sd_m": -0.1}, {"pose_drift": float("nan")}])
 def test_negative_pose_error_is_refused(bad):
     from jaxcal.errors import JaxcalError

@@ -126,8 +126,11 @@ def run(args) -> int:
     )
     partial = f" ({pu['partial']} with a coordinate not fixed)" if pu["partial"] else ""
     quality = f", predicted RMS uncertainty {pred:.3g} m" if np.isfinite(pred) else ", no covariance"
-    if not mesh and np.isfinite(pred) and not _pose_error_stated(params):
+    drift_used = result.params.get("info_pose_drift_upper") == result.params.get("pose_drift", 0.0) != 0.0
+    if not mesh and np.isfinite(pred) and not _pose_error_stated(params) and not drift_used:
         quality += " (poses taken as exact: state their error with --set pose_drift=... / pose_sd_m=...)"
+    elif not mesh and np.isfinite(pred) and drift_used:
+        quality += f" (with the pose drift estimated from the ranges, {result.params['pose_drift']:.3g} m/sqrt(s))"
     say(
         args,
         _summary(args.method, result.ids, est, fixed) + f"{partial}{quality} in {elapsed:.2f} s "

@@ -86,15 +86,18 @@ class NLSParams(TrajectoryParams):
             the simulated `small` family (even seeds; issue #19): where the clocks agree it changed the
             horizontal error by a median factor of 1.00, with an offset in +-0.3 s it halved it.
         estimate_drift: where `pose_drift` is not stated (0), estimate the poses' drift intensity from the ranges
-            at the fit (`jaxcal.trajectory.drift`) and propagate it into the covariance as a stated one would
-            be (one line says the value and how much it widened the anchors' sd); a stated `pose_drift` > 0
-            always wins, and false keeps the poses exact. A constant pose shift is not in it (`pose_sd_m`).
+            at the fit (`jaxcal.trajectory.drift`) and propagate its one-sd upper bound into the covariance as a
+            stated one would be (one line says the value and how much it widened the anchors' sd); a stated
+            `pose_drift` > 0 always wins. A constant pose shift is not in it (`pose_sd_m`). Off by default: the
+            ranges of a few anchors rarely tell a growing drift from a bounded pose error, and on the hanyang
+            drives the random walk widened well-calibrated covariances several-fold (docs/benchmarks/
+            uncertainty.md, eleventh round).
         min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s: as for `ls`, and so are
             max_gap_s, time_offset_s, max_offset_s.
     """
 
     estimate_offset: bool = True
-    estimate_drift: bool = True
+    estimate_drift: bool = False
     loss: str = "cauchy"
     loss_scale_m: float = 0.0
     min_scale_m: float = 0.05
