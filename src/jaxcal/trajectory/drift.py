@@ -26,11 +26,19 @@ effect reaches). (q^2, tau^2, nu^2) are fitted by REML (L-BFGS-B, analytic gradi
 What the covariance uses (`drift_for_covariance`) is not the REML value q but `upper`, the largest q within
 one standard deviation (the profile log-likelihood 1/2 below its maximum): on the simulated `small` campaigns
 (3 anchors, 1-3 short visits each: little to see) q is 0 on most campaigns at 0.01 m/sqrt(s) and half the
-truth at 0.02 (odd seeds 1-19: medians 0.0007 and 0.0102), while the upper bound's medians are 0.0083 and
+truth at 0.02 (odd seeds 1-19: medians 0.0006 and 0.0102), while the upper bound's medians are 0.0083 and
 0.0187, and 0.0045 (0.003-0.016) without drift (docs/benchmarks/uncertainty.md, eleventh round). Where a
 drift is present, lags between visits of an anchor carry it (q^2 L grows with the lag L, the local terms do
 not); with a single short visit of every anchor there is little to see and the bound is then what the ranges
 cannot exclude.
+
+Cells are `window_s` (2 s) long, at least 4 x an anchor's median range interval (hymn: 4.9 s); at most
+`max_cells` (100), evenly spaced in time, enter the likelihood (its cost is (4 cells)^3). A bounded alternative
+(a shared stationary error correlated over `BOUNDED_CORR_S` in place of the drift) is fitted too: where it fits
+better by `BOUNDED_MARGIN`, the ranges show a pose error that does not grow, and none is propagated. Even so,
+the random walk extrapolates a shared error seen over short lags to the whole path: on the hanyang drives (233
+s, anchors within 9 cm) it widened a well-calibrated covariance about tenfold, so `nls` uses it only on request
+(`estimate_drift`).
 """
 
 from __future__ import annotations
@@ -199,10 +207,9 @@ def estimate_drift(
     Args:
         anchors: list of (pos (n, 3) [m], rng (n,) [m], time (n,) [s, in order], anchor (3,) [m], bias [m]).
         t0: time of the first pose [s]. window_s: cell length [s] (at least 4 x the median interval between an
-            anchor's ranges). max_cells: at most this many cells, evenly
-            spaced in time, enter the likelihood (it costs (4 cells)^3; sigma^2 is from every cell).
-            min_scale_m: Cauchy scale floor [m].
-        min_cells: fewer usable cells give NaN.
+            anchor's ranges). max_cells: at most this many cells, evenly spaced in time, enter the likelihood (it
+            costs (4 cells)^3; sigma^2 is from every cell). min_scale_m: Cauchy scale floor [m].
+        min_cells: fewer usable cells give NaN. corr_s: correlation time [s] of the local terms.
     """
     gaps = [float(np.median(np.diff(a[2]))) for a in anchors if len(a[2]) > 1]
     window_s = max(window_s, 4.0 * float(np.median(gaps))) if gaps else window_s  # about 4 ranges a cell at least
