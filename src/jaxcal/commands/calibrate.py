@@ -128,7 +128,8 @@ def run(args) -> int:
     quality = f", predicted RMS uncertainty {pred:.3g} m" if np.isfinite(pred) else ", no covariance"
     drift_used = result.params.get("info_pose_drift_upper") == result.params.get("pose_drift", 0.0) != 0.0
     if not mesh and np.isfinite(pred) and not _pose_error_stated(params) and not drift_used:
-        quality += " (poses taken as exact: state their error with --set pose_drift=... / pose_sd_m=...)"
+        or_estimate = ", or --set estimate_drift=true" if args.method == "nls" else ""
+        quality += f" (poses taken as exact: state their error with --set pose_drift=... / pose_sd_m=...{or_estimate})"
     elif not mesh and np.isfinite(pred) and drift_used:
         quality += f" (with the pose drift estimated from the ranges, {result.params['pose_drift']:.3g} m/sqrt(s))"
     say(

@@ -65,8 +65,8 @@ class TrajectoryParams(eqx.Module):
             deviation [m] per axis of an offset shared by the whole path (frame, lever arm) and the intensity
             [m / sqrt(s)] of a random-walk drift from the first pose (odometry). The ranges cannot show an
             error that moves the tag positions together (the anchor moves with them), so it is added to
-            every anchor's covariance by linear propagation through the fit. 0 (default): poses exact, except
-            that `nls` then estimates the drift from the ranges (its `estimate_drift`).
+            every anchor's covariance by linear propagation through the fit. 0 (default): poses exact (`nls`
+            can estimate the drift from the ranges instead: its `estimate_drift`, off by default).
         order, knot_dt_s, max_gap_s: pose B-spline (order 4 = cubic; 0 = automatic).
         time_offset_s, estimate_offset, max_offset_s: pose minus range clock offset [s] and its search.
     """
