@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # Set up .venv (if needed) and run the whole test suite. Extra arguments go to pytest.
-# The files run in parallel (pytest-xdist, one worker per core, each file on one worker so its module
-# fixtures are built once); JAXCAL_TEST_WORKERS=0 runs them in this process, one after another.
+# The tests run in parallel (pytest-xdist, one worker per core; `worksteal`: an idle worker takes tests
+# queued on a busy one); JAXCAL_TEST_WORKERS=0 runs them in this process, one after another.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 export JAX_PLATFORMS="${JAX_PLATFORMS:-cpu}"
-exec .venv/bin/python -m pytest -n "${JAXCAL_TEST_WORKERS:-auto}" --dist loadfile "$@"
+exec .venv/bin/python -m pytest -n "${JAXCAL_TEST_WORKERS:-auto}" --dist worksteal "$@"
