@@ -389,12 +389,12 @@ def compare(args) -> None:
                 recs.append(pickle.load(f))
 
     def key(r):  # noise draws of a layout apart from the family networks
-        return (r["family"] + ("" if r["draw"] is None else " draws"), r["method"])
+        return (r["family"] + ("" if r.get("draw") is None else " draws"), r["method"])
 
     for fam, meth in sorted({key(r) for r in recs}):
         group = [r for r in recs if key(r) == (fam, meth)]
         for rule in args.rules.split(","):
-            figs = [(r["seed"], r["draw"], network_figures(r, rule_cov(r, rule))) for r in group]
+            figs = [(r["seed"], r.get("draw"), network_figures(r, rule_cov(r, rule))) for r in group]
             figs = [x for x in figs if x[2] is not None]
             if not figs:
                 continue
