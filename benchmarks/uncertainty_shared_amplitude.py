@@ -394,6 +394,8 @@ def compare(args) -> None:
     for fam, meth in sorted({key(r) for r in recs}):
         group = [r for r in recs if key(r) == (fam, meth)]
         for rule in args.rules.split(","):
+            if rule.partition(":")[0] in ("tI", "tN", "texp") and not meth.startswith(("batch", "pgp+batch")):
+                continue  # batch's free-coordinate layout only
             figs = [(r["seed"], r.get("draw"), network_figures(r, rule_cov(r, rule))) for r in group]
             figs = [x for x in figs if x[2] is not None]
             if not figs:
