@@ -69,6 +69,12 @@ def _parts(t, amp, b_hat, info) -> dict:
     }
 
 
+def _shared_amplitude(b_hat: np.ndarray, cov_b: np.ndarray, info: np.ndarray) -> np.ndarray:
+    """(Q, Q) expected b b^T of the shared amplitudes given their least-squares estimate `b_hat` (Q,) and its
+    covariance `cov_b` (Q, Q) under the other components (flat prior); `info` (Q,) a^T a per pattern."""
+    return np.outer(b_hat, b_hat) + cov_b
+
+
 def variance_components(
     jac: np.ndarray,
     e: np.ndarray,
@@ -119,8 +125,8 @@ def variance_components(
         ginv = np.linalg.inv(gram)
         b_hat = ginv @ (a.T @ e)  # least squares; its covariance under the other components (sandwich)
         cov_b = ginv @ a.T @ (proj @ sigma0 @ proj.T) @ a @ ginv.T
-        amp = np.outer(b_hat, b_hat) + cov_b  # expected b b^T given the residuals (flat prior)
         info = np.diag(gram)
+        amp = _shared_amplitude(b_hat, cov_b, info)
     else:  # a pattern that leaves nothing in the residuals (e.g. constant, with a fitted offset)
         b_hat, amp, info = np.full(pat.shape[1], np.nan), np.diag(t[3:]), np.diag(gram)
     sigma = sigma0 + pat @ amp @ pat.T
@@ -207,8 +213,8 @@ def _components(jac, e, w, spread, i, j, n_nodes, prior_prec, shared):
         b_hat = ginv @ (a_pat.T @ e)
         u = a_pat - b.T @ (jac.T @ a_pat)  # proj^T a
         cov_b = ginv @ (u.T @ sigma0_dot(u)) @ ginv.T
-        amp = np.outer(b_hat, b_hat) + cov_b
         info = np.diag(gram)
+        amp = _shared_amplitude(b_hat, cov_b, info)
     else:
         b_hat, amp, info = np.full(pat.shape[1], np.nan), np.diag(t[3:]), np.diag(gram)
     return t, amp, pat, b, _parts(t, amp, b_hat, info)
