@@ -339,8 +339,8 @@ def drift_for_covariance(dataset, groups, est, bias, cov, p, method: str):
         extra = extra_cov = pose_error_covariances(dataset, groups, est, none, method, bounded)
         what = (
             f"a bounded shared error of sd {fit.bounded_sd_m:.3g} m, at most {fit.bounded_upper_m:.3g} m within one "
-            f"sd, correlated over {fit.bounded_corr_s:.0f} s (it fits as well as a drift: log-likelihood "
-            f"{-fit.log_lr_bounded:+.1f}), which is used"
+            f"sd, correlated over {fit.bounded_corr_s:.0f} s (a random-walk drift fits {fit.log_lr_bounded:+.1f} in "
+            f"log-likelihood, within {SELECT_MARGIN:g}), which is used"
         )
     else:
         if not (np.isfinite(fit.upper) and fit.upper > 0):
