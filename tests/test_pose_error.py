@@ -92,7 +92,7 @@ def test_drift_propagation_matches_the_spread_of_refits_under_simulated_drift(rn
 def test_bounded_error_propagation_matches_the_spread_of_refits(rng):
     """Monte Carlo for the bounded shared error: reported tag positions = true + a stationary (Ornstein-Uhlenbeck)
     horizontal error of sd s and correlation time T, drawn exactly at the range times; the refits' covariance over
-    400 draws is the propagated one (within 20 %), and it is below s^2 where T is short against the passes (the
+    400 draws is the propagated one (within the sampling error), and it is below s^2 where T is short against the passes (the
     fit averages the error) and near s^2 where T is long (the error moves the anchor whole)."""
     gen = np.random.default_rng(rng)
     t, tags, anchor = _two_passes(gen)
@@ -110,8 +110,10 @@ def test_bounded_error_propagation_matches_the_spread_of_refits(rng):
                 delta[i] = decay[i] * delta[i - 1] + kick[i]
             fits.append(_fit(tags + np.column_stack([delta, np.zeros(t.size)]), r, anchor))
         emp = np.cov(np.array(fits).T)
+        # 400 draws: about 7 % sd per variance; 120 such checks over seeds 0-19, so a band of 4.5 sd (seed 4 drew
+        # 0.75 at T = 3 s; 2000 draws on that seed give 0.98-1.00)
         for v in (np.array([1.0, 0.0]), np.array([0.0, 1.0]), np.array([1.0, 1.0]) / np.sqrt(2)):
-            assert 0.8 < (v @ emp[:2, :2] @ v) / (v @ pred[:2, :2] @ v) < 1.25, (corr_s, v)
+            assert 0.7 < (v @ emp[:2, :2] @ v) / (v @ pred[:2, :2] @ v) < 1.4, (corr_s, v)
         assert lo * s**2 < np.trace(pred[:2, :2]) / 2 < hi * s**2, (corr_s, np.trace(pred[:2, :2]) / 2 / s**2)
         assert np.linalg.eigvalsh(pred).min() > -1e-12 * np.trace(pred)
 

@@ -92,7 +92,7 @@ class NLSParams(TrajectoryParams):
             it widened the anchors' sd. A stated `pose_drift` > 0 always wins. A constant pose shift is not in it
             (`pose_sd_m`). Off by default: on the hanyang drives it still widens well-calibrated covariances
             about 2.5-fold in sd (NEES/dof 1.14 -> 0.19), and on the simulated drift family its worst campaign is
-            3.2 (docs/benchmarks/uncertainty.md, twelfth round).
+            3.75 (docs/benchmarks/uncertainty.md, twelfth round).
         min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s: as for `ls`, and so are
             max_gap_s, time_offset_s, max_offset_s.
     """
