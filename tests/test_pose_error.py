@@ -92,8 +92,8 @@ def test_drift_propagation_matches_the_spread_of_refits_under_simulated_drift(rn
 def test_bounded_error_propagation_matches_the_spread_of_refits(rng):
     """Monte Carlo for the bounded shared error: reported tag positions = true + a stationary (Ornstein-Uhlenbeck)
     horizontal error of sd s and correlation time T, drawn exactly at the range times; the refits' covariance over
-    400 draws is the propagated one (within the sampling error), and it is below s^2 where T is short against the passes (the
-    fit averages the error) and near s^2 where T is long (the error moves the anchor whole)."""
+    400 draws is the propagated one (within the sampling error), and it is below s^2 where T is short against the
+    passes (the fit averages the error) and near s^2 where T is long (the error moves the anchor whole)."""
     gen = np.random.default_rng(rng)
     t, tags, anchor = _two_passes(gen)
     r = np.linalg.norm(tags - anchor, axis=1)
