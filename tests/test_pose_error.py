@@ -19,7 +19,7 @@ def _two_passes(gen, n=120):
     return t, tags, anchor
 
 
-def _reference(tags, rng, t, anchor, sd, drift, t0):
+def _reference(tags, rng, t, anchor, sd, drift, t0, bounded=(0.0, 1.0)):
     """The double sum over range pairs written out (n^2 kernel matrix), unit weights at the same estimate."""
     d = tags - anchor
     dist = np.linalg.norm(d, axis=1)
@@ -32,6 +32,7 @@ def _reference(tags, rng, t, anchor, sd, drift, t0):
     a_inv = np.linalg.inv((jac * w[:, None]).T @ jac)
     tau = t - t0
     k = sd**2 + drift**2 * np.minimum(tau[:, None], tau[None, :])
+    k = k + bounded[0] ** 2 * np.exp(-np.abs(tau[:, None] - tau[None, :]) / bounded[1])
     m = np.zeros((4, 4))
     for i in range(len(rng)):
         for j in range(len(rng)):
@@ -44,9 +45,15 @@ def test_pose_error_covariance_equals_the_double_sum(rng):
     gen = np.random.default_rng(rng)
     t, tags, anchor = _two_passes(gen, n=40)
     r = np.linalg.norm(tags - anchor, axis=1) + 0.1 + gen.standard_t(3, t.size) * 0.05
-    for sd, drift in ((0.0, 0.02), (0.15, 0.0), (0.1, 0.05)):
-        fast = pose_error_covariance(tags, r, t, anchor, sd, drift, t0=2.0)
-        ref = _reference(tags, r, t, anchor, sd, drift, 2.0)
+    cases = ((0.0, 0.02, (0.0, 1.0)), (0.15, 0.0, (0.0, 1.0)), (0.1, 0.05, (0.0, 1.0)))
+    # the bounded shared error (exponential kernel) over correlation times shorter than the gaps between ranges,
+    # than a pass, than the two passes' separation, and with the other terms
+    cases += ((0.0, 0.0, (0.2, 0.05)), (0.0, 0.0, (0.2, 4.0)), (0.0, 0.0, (0.1, 300.0)), (0.1, 0.02, (0.2, 30.0)))
+    for sd, drift, bounded in cases:
+        fast = pose_error_covariance(
+            tags, r, t, anchor, sd, drift, t0=2.0, bounded_sd_m=bounded[0], bounded_corr_s=bounded[1]
+        )
+        ref = _reference(tags, r, t, anchor, sd, drift, 2.0, bounded)
         np.testing.assert_allclose(fast, ref, rtol=1e-9, atol=1e-10 * np.trace(ref))
         assert np.linalg.eigvalsh(fast).min() > -1e-12 * np.trace(fast)
 
@@ -82,9 +89,38 @@ def test_drift_propagation_matches_the_spread_of_refits_under_simulated_drift(rn
     assert np.trace(pred[:2, :2]) > (sd**2 + drift**2 * 50.0)  # at least the pose error at the passes' mean time
 
 
+def test_bounded_error_propagation_matches_the_spread_of_refits(rng):
+    """Monte Carlo for the bounded shared error: reported tag positions = true + a stationary (Ornstein-Uhlenbeck)
+    horizontal error of sd s and correlation time T, drawn exactly at the range times; the refits' covariance over
+    400 draws is the propagated one (within the sampling error), and it is below s^2 where T is short against the
+    passes (the fit averages the error) and near s^2 where T is long (the error moves the anchor whole)."""
+    gen = np.random.default_rng(rng)
+    t, tags, anchor = _two_passes(gen)
+    r = np.linalg.norm(tags - anchor, axis=1)
+    s = 0.02
+    for corr_s, lo, hi in ((3.0, 0.02, 0.6), (600.0, 0.7, 1.5)):
+        pred = pose_error_covariance(tags, r, t, anchor, 0.0, 0.0, 0.0, bounded_sd_m=s, bounded_corr_s=corr_s)
+        decay = np.exp(-np.diff(t, prepend=t[0]) / corr_s)
+        fits = []
+        for _ in range(400):
+            kick = gen.normal(0.0, s, (t.size, 2)) * np.sqrt(1.0 - decay**2)[:, None]
+            delta = np.zeros((t.size, 2))
+            delta[0] = gen.normal(0.0, s, 2)
+            for i in range(1, t.size):
+                delta[i] = decay[i] * delta[i - 1] + kick[i]
+            fits.append(_fit(tags + np.column_stack([delta, np.zeros(t.size)]), r, anchor))
+        emp = np.cov(np.array(fits).T)
+        # 400 draws: about 7 % sd per variance; 120 such checks over seeds 0-19, so a band of 4.5 sd (seed 4 drew
+        # 0.75 at T = 3 s; 2000 draws on that seed give 0.98-1.00)
+        for v in (np.array([1.0, 0.0]), np.array([0.0, 1.0]), np.array([1.0, 1.0]) / np.sqrt(2)):
+            assert 0.7 < (v @ emp[:2, :2] @ v) / (v @ pred[:2, :2] @ v) < 1.4, (corr_s, v)
+        assert lo * s**2 < np.trace(pred[:2, :2]) / 2 < hi * s**2, (corr_s, np.trace(pred[:2, :2]) / 2 / s**2)
+        assert np.linalg.eigvalsh(pred).min() > -1e-12 * np.trace(pred)
+
+
 def test_stated_pose_error_widens_nls_covariance_by_the_propagated_term():
     ds = lissajous(noise=0.05, seed=3)
-    base = nls.calibrate(ds, {"mirror_profile": 0})
+    base = nls.calibrate(ds, {"mirror_profile": 0, "estimate_drift": False})
     wide = nls.calibrate(ds, {"mirror_profile": 0, "pose_sd_m": 0.2, "pose_drift": 0.01})
     np.testing.assert_allclose(wide.position, base.position)
     for a in range(3):
@@ -95,11 +131,11 @@ def test_stated_pose_error_widens_nls_covariance_by_the_propagated_term():
         assert np.linalg.eigvalsh(wide.covariance[a]).min() >= 0
 
 
-def test_nls_widens_by_the_estimated_drift_states_it_and_keeps_positions(caplog):
+def test_nls_widens_by_the_estimated_pose_error_states_it_and_keeps_positions(caplog):
     """nls with `estimate_drift` (`jaxcal.trajectory.drift`; here to share the compiled fit of the test above): a
-    drift of 0.05 m/sqrt(s) on the poses is found (the upper bound used is positive, the covariance grows by a PSD
-    term, one warning line says so); positions are those of the run without the estimate; a stated `pose_drift`
-    is used as it is."""
+    drift of 0.05 m/sqrt(s) on the poses is found (the model propagated, a drift's upper bound or a bounded shared
+    error's, is positive; the covariance grows by a PSD term; one warning line says so); positions are those of
+    the run without the estimate; a stated `pose_drift` is used as it is."""
     import logging
 
     import equinox as eqx
@@ -112,20 +148,24 @@ def test_nls_widens_by_the_estimated_drift_states_it_and_keeps_positions(caplog)
     pose = np.asarray(ds.pose_position).copy()
     pose[:, :2] += walk - walk[0]
     ds = eqx.tree_at(lambda d: d.pose_position, ds, pose)
-    off = nls.calibrate(ds, {"mirror_profile": 0})
+    off = nls.calibrate(ds, {"mirror_profile": 0, "estimate_drift": False})
     with caplog.at_level(logging.WARNING, logger="jaxcal"):
         on = nls.calibrate(ds, {"mirror_profile": 0, "estimate_drift": True})
     np.testing.assert_allclose(on.position, off.position)
     upper = on.params["info_pose_drift_upper"]
     assert upper >= on.params["info_pose_drift_estimate"] >= 0 and upper > 0.01
-    assert on.params["pose_drift"] == upper
+    if on.params["info_pose_error_model"] == "drift":
+        assert on.params["pose_drift"] == upper
+    else:  # the bounded alternative: its sd's upper bound, over a correlation time up to the path's span
+        assert on.params["pose_drift"] == 0 and on.params["info_pose_bounded_sd_m"] > 0.05
+        assert 0 < on.params["info_pose_bounded_corr_s"] <= float(np.ptp(np.asarray(ds.pose_time)))
     assert sum("pose_drift not stated" in r.getMessage() for r in caplog.records) == 1
     for a in range(3):
         extra = on.covariance[a] - off.covariance[a]
         assert np.linalg.eigvalsh(0.5 * (extra + extra.T)).min() > -1e-12 and np.trace(extra[:2, :2]) > 0
         np.testing.assert_allclose(on.covariance[a], on.covariance[a].T)
     stated = nls.NLSParams(pose_drift=0.02, estimate_drift=True)
-    assert drift_for_covariance(ds, None, None, None, None, stated, "nls") == (stated, {})
+    assert drift_for_covariance(ds, None, None, None, None, stated, "nls") == (stated, {}, None)
 
 
 @pytest.mark.parametrize("bad", [{"pose_sd_m": -0.1}, {"pose_drift": float("nan")}])

@@ -126,18 +126,26 @@ def run(args) -> int:
     )
     partial = f" ({pu['partial']} with a coordinate not fixed)" if pu["partial"] else ""
     quality = f", predicted RMS uncertainty {pred:.3g} m" if np.isfinite(pred) else ", no covariance"
-    drift_used = result.params.get("info_pose_drift_upper") == result.params.get("pose_drift", 0.0) != 0.0
+    drift_used = bool(result.params.get("info_pose_error_propagated", False))
     if not mesh and np.isfinite(pred) and not _pose_error_stated(params) and not drift_used:
         or_estimate = ", or --set estimate_drift=true" if args.method == "nls" else ""
         quality += f" (poses taken as exact: state their error with --set pose_drift=... / pose_sd_m=...{or_estimate})"
     elif not mesh and np.isfinite(pred) and drift_used:
-        quality += f" (with the pose drift estimated from the ranges, {result.params['pose_drift']:.3g} m/sqrt(s))"
+        quality += f" (with {_estimated_pose_error(result.params)} estimated from the ranges)"
     say(
         args,
         _summary(args.method, result.ids, est, fixed) + f"{partial}{quality} in {elapsed:.2f} s "
         f"-> {args.output}{out.note()}",
     )
     return 0
+
+
+def _estimated_pose_error(params: dict) -> str:
+    """What `nls` propagated of the pose error it estimated (`jaxcal.trajectory.drift`), in words."""
+    if params.get("info_pose_error_model") == "bounded":
+        sd, corr = (params.get(f"info_pose_bounded_{k}", float("nan")) for k in ("sd_m", "corr_s"))
+        return f"a bounded pose error of sd {sd:.3g} m over {corr:.0f} s"
+    return f"a pose drift of {params.get('pose_drift', float('nan')):.3g} m/sqrt(s)"
 
 
 def _pose_error_stated(params: dict) -> bool:

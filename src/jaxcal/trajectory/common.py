@@ -66,7 +66,7 @@ class TrajectoryParams(eqx.Module):
             [m / sqrt(s)] of a random-walk drift from the first pose (odometry). The ranges cannot show an
             error that moves the tag positions together (the anchor moves with them), so it is added to
             every anchor's covariance by linear propagation through the fit. 0 (default): poses exact (`nls`
-            can estimate the drift from the ranges instead: its `estimate_drift`, off by default).
+            can estimate the pose error from the ranges instead: its `estimate_drift`, off by default).
         order, knot_dt_s, max_gap_s: pose B-spline (order 4 = cubic; 0 = automatic).
         time_offset_s, estimate_offset, max_offset_s: pose minus range clock offset [s] and its search.
     """
@@ -238,14 +238,15 @@ def report_fits(method: str, codes, groups, p, hint: str):
     return rep
 
 
-def finish(dataset, method, p, groups, est, cov, info, solver=None) -> Result:
+def finish(dataset, method, p, groups, est, cov, info, solver=None, pose_cov_extra=None) -> Result:
     """Build the Result: NaN rows for anchors with fewer than `p.min_ranges` ranges or failed fits; a NaN
     height (the rest kept, one warning line) for anchors whose height the path cannot observe
     (`unobservable_height`) and for anchors the ranges cannot tell from their mirror image through the
     path (`jaxcal.trajectory.mirror.compare_sides`, which also moves an anchor to the other side where that
     fits clearly better). A stated pose error (`pose_sd_m`, `pose_drift`) is added to every covariance
     first (`jaxcal.trajectory.pose_error`). `solver` (a `jaxcal.solver.SolverReport`) adds `solver_status` and
-    `solver_failed` to the params."""
+    `solver_failed` to the params. `pose_cov_extra` ((A, 3, 3) or None): a further pose error covariance, added
+    with the stated one (`nls`'s estimated bounded shared error, `jaxcal.trajectory.drift`)."""
     from jaxcal import __version__
 
     est = np.array(est, dtype=float)
@@ -256,6 +257,8 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None) -> Result:
     est[bad] = np.nan
     cov[bad] = np.nan
     pose_cov = pose_error_covariances(dataset, groups, est, p, method) + offset_covariances(info, est.shape[0])
+    if pose_cov_extra is not None:
+        pose_cov = pose_cov + np.where(np.isfinite(est).all(axis=1)[:, None, None], pose_cov_extra, 0.0)
     info = {k: v for k, v in info.items() if k != "offset_sensitivity"}
     cov = cov + pose_cov
     flat, zstd = unobservable_height(groups, est, p)

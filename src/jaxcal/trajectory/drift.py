@@ -33,12 +33,21 @@ not); with a single short visit of every anchor there is little to see and the b
 cannot exclude.
 
 Cells are `window_s` (2 s) long, at least 4 x an anchor's median range interval (hymn: 4.9 s); at most
-`max_cells` (100), evenly spaced in time, enter the likelihood (its cost is (4 cells)^3). A bounded alternative
-(a shared stationary error correlated over `BOUNDED_CORR_S` in place of the drift) is fitted too: where it fits
-better by `BOUNDED_MARGIN`, the ranges show a pose error that does not grow, and none is propagated. Even so,
-the random walk extrapolates a shared error seen over short lags to the whole path: on the hanyang drives (233
-s, anchors within 9 cm) it widened a well-calibrated covariance about tenfold, so `nls` uses it only on request
-(`estimate_drift`).
+`max_cells` (100), evenly spaced in time, enter the likelihood (its cost is (4 cells)^3).
+
+Which model is propagated. The random walk extrapolates a shared error seen over short lags to the whole path,
+from the first pose: on the hanyang drives (233 s, anchors within 9 cm) its upper bound widened a
+well-calibrated covariance about tenfold (NEES/dof 1.14 -> 0.01), on hymn-torgau (4 hours) it put 0.3 m^2 on each
+horizontal axis. So a bounded alternative is fitted too: a shared stationary error of variance s^2 correlated over
+exp(-|t - t'| / T) in place of the drift, T the best of `BOUNDED_CORR_S` up to the cells' span. Where it fits
+within `SELECT_MARGIN` of the drift (or better), it is the model propagated (`pose_error`'s exponential kernel,
+s at its one-sd upper bound as for q). With a few anchors the two are rarely told apart: on the simulated `small`
+campaigns (even seeds 0-18, with and without drift) the drift fitted at most 0.39 better, on the four recordings at
+most 0.04 better once T may reach the span (hymn's 10.8 in favour of the drift with T <= 180 s), and on hanyang
+LOS the bounded one fits 1.2 better; so in practice it is the bounded
+model, whose variance does not grow with the time since the first pose. Still opt-in in `nls`
+(`estimate_drift`): on hanyang it narrows the widening from x10 to x2.5 in sd but not further
+(docs/benchmarks/uncertainty.md, twelfth round).
 """
 
 from __future__ import annotations
@@ -57,10 +66,10 @@ __all__ = ["DriftEstimate", "cell_statistics", "reml_terms", "reml_loglik", "est
 
 SCALES = np.array([1e-4, 1e-2, 1e-2])  # typical q^2 [m^2/s], tau^2 and nu^2 [m^2]: the optimiser's units
 UPPER_DROP = 0.5  # the upper bound: where the profile REML log-likelihood is this far below its maximum (1 sd)
-BOUNDED_CORR_S = (20.0, 60.0, 180.0)  # correlation times [s] of the bounded alternative to the drift
-# how much better [log-likelihood] the bounded alternative must fit to reject the drift: on the simulated drift
-# campaigns (odd seeds 1-19, 0.01 and 0.02 m/sqrt(s)) it fitted up to 0.98 better (3 anchors cannot tell the two)
-BOUNDED_MARGIN = 2.0
+# correlation times [s] of the bounded alternative to the drift (those up to the cells' span are tried)
+BOUNDED_CORR_S = (20.0, 60.0, 180.0, 600.0, 1800.0, 5400.0)
+# the bounded alternative is propagated where it fits at most this much worse [log-likelihood] than the drift
+SELECT_MARGIN = 2.0
 LOCAL_CORR_S = 2.5  # correlation time [s] of the per-anchor offsets and shifts (chosen on odd seeds, against 5 and 10)
 
 
@@ -77,8 +86,11 @@ class DriftEstimate(NamedTuple):
         noise_sd_m: sigma [m], the within-cell noise sd (fixed, not fitted).
         cells: cells used. log_lr: REML log-likelihood of the estimate minus that at q = 0 (>= 0).
         log_lr_bounded: the estimate's REML log-likelihood minus the best with a shared error that does not
-            grow (correlated over each of `BOUNDED_CORR_S`) in place of the drift; below -`BOUNDED_MARGIN` the ranges
-            show a bounded pose error rather than a drift, and `drift_for_covariance` propagates none.
+            grow (correlated over each of `BOUNDED_CORR_S`) in place of the drift.
+        model: "drift" or "bounded", the one `drift_for_covariance` propagates: "bounded" where the bounded
+            alternative fits within `SELECT_MARGIN` of the drift (or better).
+        bounded_sd_m, bounded_upper_m, bounded_corr_s: the bounded alternative's REML sd s [m], its one-sd upper
+            bound (as `upper`) [m] and its correlation time T [s] (the best of `BOUNDED_CORR_S` up to the span).
     """
 
     drift: float
@@ -89,6 +101,10 @@ class DriftEstimate(NamedTuple):
     cells: int
     log_lr: float
     log_lr_bounded: float
+    model: str = "drift"
+    bounded_sd_m: float = float("nan")
+    bounded_upper_m: float = float("nan")
+    bounded_corr_s: float = float("nan")
 
 
 def _cauchy(res: np.ndarray, min_scale_m: float) -> np.ndarray:
@@ -241,25 +257,43 @@ def estimate_drift(
         theta, top = np.array([0.0, *null.x]) * SCALES, -null.fun
     else:
         theta, top = full.x * SCALES, -full.fun
-    nuisance = theta[1:] / SCALES[1:]
-    # a shared error that does not grow (a bounded pose error) explains the ranges better: not a drift
-    bounded = -min(
-        fit([z, *nuisance], terms=(reml_terms(cells, len(anchors), corr_s, c)[2][0], *terms[1:])).fun
-        for c in BOUNDED_CORR_S
-        for z in (0.0, 1.0)
-    )
+    nuisance0 = theta[1:] / SCALES[1:]
+    nuisance = nuisance0.copy()
 
-    def profile_gap(q: float) -> float:  # profile log-likelihood at q minus (its maximum - 1/2)
+    def upper_bound(value: float, peak: float, unit: float, start: float, limit: float, terms) -> float:
+        """The largest x (theta_0 = unit x^2) whose profile log-likelihood is within `UPPER_DROP` of `peak`, the
+        other variances refitted; inf where it is above `limit`."""
         nonlocal nuisance
-        r = fit(nuisance, q**2)
-        nuisance = r.x
-        return -r.fun - (top - UPPER_DROP)
+        nuisance = nuisance0.copy()
 
+        def gap(x: float) -> float:  # profile log-likelihood at x minus (its maximum - 1/2)
+            nonlocal nuisance
+            r = fit(nuisance, unit * x**2, terms=terms)
+            nuisance = r.x
+            return -r.fun - (peak - UPPER_DROP)
+
+        hi = max(2.0 * value, start)
+        while gap(hi) > 0 and hi < limit:
+            hi *= 2.0
+        return float(brentq(gap, value, hi, xtol=1e-4, rtol=1e-2)) if hi < limit else float("inf")
+
+    # a shared error that does not grow (a bounded pose error), correlated over T up to the span
+    span = max(c[1] for c in cells) - min(c[1] for c in cells)
+    grid = [c for c in BOUNDED_CORR_S if c <= max(span, BOUNDED_CORR_S[0])]
+    tried = []
+    for c in grid:
+        b_terms = (reml_terms(cells, len(anchors), corr_s, c)[2][0], *terms[1:])
+        tried.append((min((fit([z, *nuisance0], terms=b_terms) for z in (0.0, 1.0)), key=lambda r: r.fun), c, b_terms))
+    b_fit, b_corr, b_terms = min(tried, key=lambda x: x[0].fun)  # the first of equals, as the grid's order
+    bounded = -b_fit.fun
     q_hat = float(np.sqrt(theta[0]))
-    hi = max(2.0 * q_hat, 0.004)
-    while profile_gap(hi) > 0 and hi < 1.0:
-        hi *= 2.0
-    upper = float(brentq(profile_gap, q_hat, hi, xtol=1e-4, rtol=1e-2)) if hi < 1.0 else float("inf")
+    upper = upper_bound(q_hat, top, 1.0, 0.004, 1.0, terms)
+    b_sd = float(np.sqrt(max(b_fit.x[0], 0.0) * SCALES[0] * 100.0))
+    model = "bounded" if bounded >= top - SELECT_MARGIN else "drift"
+    b_upper = float("nan")
+    if model == "bounded":
+        nuisance0 = b_fit.x[1:].copy()
+        b_upper = upper_bound(b_sd, bounded, 0.01, 0.04, 10.0, b_terms)  # theta_0 = s^2 / 100 (`reml_terms`)
     return DriftEstimate(
         q_hat,
         upper,
@@ -269,16 +303,21 @@ def estimate_drift(
         len(cells),
         float(top + null.fun),
         float(top - bounded),
+        model,
+        b_sd,
+        b_upper,
+        float(b_corr),
     )
 
 
 def drift_for_covariance(dataset, groups, est, bias, cov, p, method: str):
-    """The parameters `finish` should propagate the pose error with: `p` itself where `pose_drift` is stated (> 0)
-    or `estimate_drift` is off; else `p` with `pose_drift` set to `estimate_drift`'s value from the ranges at the
-    fit (`est` (A, 3), `bias` (A,)), and one line (logger "jaxcal") with the value and how much it widens the
-    anchors' horizontal sd over `cov` (A, 3, 3). Returns (params, info entries)."""
+    """The pose error `finish` should propagate: none where `pose_drift` is stated (> 0) or `estimate_drift` is
+    off (`p` itself); else `estimate_drift`'s model at the fit (`est` (A, 3), `bias` (A,)): the drift's upper bound
+    as `pose_drift`, or the bounded shared error (sd's upper bound, correlation time) as an extra covariance,
+    and one line (logger "jaxcal") with the values and how much it widens the anchors' horizontal sd over `cov`
+    (A, 3, 3). Returns (params, info entries, extra (A, 3, 3) covariance or None)."""
     if p.pose_drift > 0 or not getattr(p, "estimate_drift", False):
-        return p, {}
+        return p, {}, None
     times = anchor_times(dataset, groups)
     pos, rng, mask = (np.asarray(v) for v in (groups.position, groups.range, groups.mask))
     est, bias = np.asarray(est, float), np.asarray(bias, float)
@@ -290,31 +329,38 @@ def drift_for_covariance(dataset, groups, est, bias, cov, p, method: str):
     t0 = float(np.asarray(dataset.pose_time)[0])
     fit = estimate_drift(anchors, t0, min_scale_m=float(getattr(p, "min_scale_m", 0.05)))
     info = {"pose_drift_estimate": fit.drift, "pose_drift_upper": fit.upper, "pose_drift_cells": fit.cells}
-    info["pose_drift_log_lr_bounded"] = fit.log_lr_bounded
-    if fit.log_lr_bounded < -BOUNDED_MARGIN:
-        logging.getLogger("jaxcal").warning(
-            "%s: pose_drift not stated, and the ranges show a shared pose error that does not grow rather than a "
-            "drift (log-likelihood %.1f better): none propagated; state pose_sd_m (and pose_drift) if you know them",
-            method,
-            -fit.log_lr_bounded,
+    info.update(pose_drift_log_lr_bounded=fit.log_lr_bounded, pose_error_model=fit.model, pose_error_propagated=False)
+    if fit.model == "bounded":
+        info.update(pose_bounded_sd_m=fit.bounded_upper_m, pose_bounded_corr_s=fit.bounded_corr_s)
+        if not (np.isfinite(fit.bounded_upper_m) and fit.bounded_upper_m > 0):
+            return p, info, None
+        none = eqx.tree_at(lambda r: (r.pose_sd_m, r.pose_drift), p, (0.0, 0.0))
+        bounded = (fit.bounded_upper_m, fit.bounded_corr_s)
+        q = p
+        extra = extra_cov = pose_error_covariances(dataset, groups, est, none, method, bounded)
+        what = (
+            f"a bounded shared error of sd {fit.bounded_sd_m:.3g} m, at most {fit.bounded_upper_m:.3g} m within one "
+            f"sd, correlated over {fit.bounded_corr_s:.0f} s (a random-walk drift fits {fit.log_lr_bounded:+.1f} in "
+            f"log-likelihood, within {SELECT_MARGIN:g}), which is used"
         )
-        return p, info
-    if not (np.isfinite(fit.upper) and fit.upper > 0):
-        return p, info
-    q = eqx.tree_at(lambda r: r.pose_drift, p, fit.upper)
-    extra = pose_error_covariances(dataset, groups, est, q, method)
+    else:
+        if not (np.isfinite(fit.upper) and fit.upper > 0):
+            return p, info, None
+        q, extra_cov = eqx.tree_at(lambda r: r.pose_drift, p, fit.upper), None
+        extra = pose_error_covariances(dataset, groups, est, q, method)
+        what = f"a drift of {fit.drift:.3g} m/sqrt(s), at most {fit.upper:.3g} within one sd, which is used"
     base = np.trace(np.asarray(cov, float)[:, :2, :2], axis1=1, axis2=2)
     ok = np.isfinite(base) & (base > 0) & np.isfinite(est).all(axis=1)
     ratio = np.sqrt(1.0 + np.trace(extra[:, :2, :2], axis1=1, axis2=2)[ok] / base[ok])
     logging.getLogger("jaxcal").warning(
-        "%s: pose_drift not stated: estimated from the ranges as %.3g m/sqrt(s), at most %.3g within one sd (%d "
-        "cells), which is used: it widens the anchors' horizontal sd by x%.2f median, up to x%.2f (a constant pose "
-        "shift is not in it: state pose_sd_m; state pose_drift, or estimate_drift=false for exact poses)",
+        "%s: pose_drift not stated: the ranges show %s (%d cells): it widens the anchors' horizontal sd by x%.2f "
+        "median, up to x%.2f (a constant pose shift is not in it: state pose_sd_m; state pose_drift, or "
+        "estimate_drift=false for exact poses)",
         method,
-        fit.drift,
-        fit.upper,
+        what,
         fit.cells,
         float(np.median(ratio)) if ratio.size else 1.0,
         float(np.max(ratio)) if ratio.size else 1.0,
     )
-    return q, info
+    info["pose_error_propagated"] = True
+    return q, info, extra_cov

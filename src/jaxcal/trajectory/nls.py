@@ -85,13 +85,14 @@ class NLSParams(TrajectoryParams):
             `time_offset_s` within +-`max_offset_s`: on by default for `nls` and `gp` (off for `ls`). Chosen on
             the simulated `small` family (even seeds; issue #19): where the clocks agree it changed the
             horizontal error by a median factor of 1.00, with an offset in +-0.3 s it halved it.
-        estimate_drift: where `pose_drift` is not stated (0), estimate the poses' drift intensity from the ranges
-            at the fit (`jaxcal.trajectory.drift`) and propagate its one-sd upper bound into the covariance as a
-            stated one would be (one line says the value and how much it widened the anchors' sd); a stated
-            `pose_drift` > 0 always wins. A constant pose shift is not in it (`pose_sd_m`). Off by default: the
-            ranges of a few anchors rarely tell a growing drift from a bounded pose error, and on the hanyang
-            drives the random walk widened well-calibrated covariances several-fold (docs/benchmarks/
-            uncertainty.md, eleventh round).
+        estimate_drift: where `pose_drift` is not stated (0), estimate the poses' shared error from the ranges
+            at the fit (`jaxcal.trajectory.drift`) and propagate it into the covariance as a stated one would be:
+            a bounded shared error (sd at its one-sd upper bound, correlated over a fitted time) where that fits
+            about as well as a random-walk drift, else the drift's upper bound; one line says what and how much
+            it widened the anchors' sd. A stated `pose_drift` > 0 always wins. A constant pose shift is not in it
+            (`pose_sd_m`). Off by default: on the hanyang drives it still widens well-calibrated covariances
+            about 2.5-fold in sd (NEES/dof 1.14 -> 0.19), and on the simulated drift family its worst campaign is
+            3.75 (docs/benchmarks/uncertainty.md, twelfth round).
         min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s: as for `ls`, and so are
             max_gap_s, time_offset_s, max_offset_s.
     """
@@ -430,8 +431,8 @@ def calibrate(dataset, params=None, config=None) -> Result:
     info = dict(info, bias_m=[float(b) for b in bias])
     hint = f"raise max_steps (now {p.max_steps}; retried with {steps}) or n_irls (now {p.n_irls})"
     rep = report_fits("nls", codes, groups, p, hint)
-    p, extra = drift_for_covariance(dataset, groups, est, bias, cov, p, "nls")
-    return finish(dataset, "nls", p, groups, est, cov, dict(info, **extra), rep)
+    p, extra, pose_cov = drift_for_covariance(dataset, groups, est, bias, cov, p, "nls")
+    return finish(dataset, "nls", p, groups, est, cov, dict(info, **extra), rep, pose_cov)
 
 
 def solve_all_checked(groups, p: NLSParams, factor: int = 4):

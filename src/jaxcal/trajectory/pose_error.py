@@ -21,6 +21,12 @@ ranges in time order, min(s, t) = integral of 1[z < s] 1[z < t] dz turns the dou
 M = sum_h [pose_sd_m^2 S_1 S_1^T + pose_drift^2 sum_k (tau_k - tau_(k-1)) S_k S_k^T], S_k = sum_(i >= k) v_i
 (tau_i = t_i - t0, tau_0 = 0). The weights are the Cauchy weights of `nls` at the estimate (scale
 2.385 x 1.4826 x the median absolute residual about the median, at least 0.05 m).
+
+A bounded shared error (`bounded_sd_m`, `bounded_corr_s`: a stationary error that does not grow, kernel
+s^2 exp(-|s - t| / T); what `jaxcal.trajectory.drift` propagates where the ranges support it rather than a
+drift) adds s^2 sum_ij v_i v_j^T exp(-|t_i - t_j| / T) to M, also in one pass: with R_i = sum_(j < i) v_j
+exp(-(t_i - t_j) / T) = exp(-(t_i - t_(i-1)) / T) (R_(i-1) + v_(i-1)), the double sum is sum_i v_i v_i^T +
+R_i v_i^T + v_i R_i^T (`_exp_kernel_sum`; in blocks of 20 T, where the recursion is a scaled cumulative sum).
 """
 
 from __future__ import annotations
@@ -42,6 +48,8 @@ def pose_error_covariance(
     t0: float,
     bias: bool = True,
     min_scale_m: float = 0.05,
+    bounded_sd_m: float = 0.0,
+    bounded_corr_s: float = 1.0,
 ) -> np.ndarray:
     """(3, 3) covariance [m^2] of one anchor's estimate from the stated pose error (module docstring).
 
@@ -50,6 +58,8 @@ def pose_error_covariance(
         anchor: (3,) the estimate [m]. sd_m: pose_sd_m [m]. drift: pose_drift [m / sqrt(s)].
         t0: time of the first pose [s]. bias: the fit has a range bias (a fourth unknown).
         min_scale_m: floor of the Cauchy scale [m].
+        bounded_sd_m, bounded_corr_s: sd s [m] and correlation time T [s] of a bounded shared error (kernel
+            s^2 exp(-|s - t| / T), module docstring); 0 = none.
     """
     d = np.asarray(pos, float) - np.asarray(anchor, float)
     dist = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
@@ -67,10 +77,34 @@ def pose_error_covariance(
     for h in range(2):
         s = np.cumsum((jac * (w * u[:, h])[:, None])[::-1], axis=0)[::-1]  # S_k = sum over i >= k of v_i
         m += sd_m**2 * np.outer(s[0], s[0]) + drift**2 * (s * dtau[:, None]).T @ s
+        if bounded_sd_m > 0:
+            m += bounded_sd_m**2 * _exp_kernel_sum(jac * (w * u[:, h])[:, None], tau, bounded_corr_s)
     a_inv = np.linalg.pinv(a_mat)
     c = (a_inv @ m @ a_inv)[:3, :3]
     lam, vec = np.linalg.eigh(0.5 * (c + c.T))  # PSD by construction; rounding can leave -1e-14 on a zero axis
     return (vec * np.maximum(lam, 0.0)) @ vec.T
+
+
+def _exp_kernel_sum(v: np.ndarray, tau: np.ndarray, corr_s: float, block: float = 20.0) -> np.ndarray:
+    """sum_ij v_i v_j^T exp(-|tau_i - tau_j| / corr_s) for v (n, k) and non-decreasing tau (n,) [s], in O(n k^2):
+    the recursion of the module docstring, run as a cumulative sum of v_j exp((tau_j - tau_ref) / T) within
+    blocks of `block` x T (factors at most e^20, so no overflow nor loss of the terms that matter)."""
+    t = np.asarray(tau, float) / max(float(corr_s), 1e-12)
+    out = v.T @ v
+    carry = np.zeros(v.shape[1])  # R just after the previous block's last range, at its time
+    t_prev = t[0] if t.size else 0.0
+    start = 0
+    while start < t.size:
+        stop = int(np.searchsorted(t, t[start] + block, side="right"))
+        tb, vb = t[start:stop], v[start:stop]
+        grow = np.exp(tb - tb[0])
+        # R_i = exp(-(t_i - t_prev)) carry + sum_(start <= j < i) v_j exp(-(t_i - t_j))
+        inner = np.cumsum(vb * grow[:, None], axis=0) - vb * grow[:, None]
+        r = np.exp(-(tb - t_prev))[:, None] * carry[None, :] + inner / grow[:, None]
+        out += r.T @ vb + vb.T @ r
+        carry, t_prev = r[-1] + vb[-1], tb[-1]
+        start = stop
+    return out
 
 
 def anchor_times(dataset, groups) -> list[np.ndarray | None]:
@@ -89,12 +123,14 @@ def anchor_times(dataset, groups) -> list[np.ndarray | None]:
     return out
 
 
-def pose_error_covariances(dataset, groups, est: np.ndarray, p, method: str) -> np.ndarray:
+def pose_error_covariances(
+    dataset, groups, est: np.ndarray, p, method: str, bounded: tuple[float, float] = (0.0, 1.0)
+) -> np.ndarray:
     """(A, 3, 3) `pose_error_covariance` of every anchor with a finite estimate (0 elsewhere) for the
-    parameters' `pose_sd_m` and `pose_drift`; an anchor whose range times are unknown (`anchor_times`) gets
-    0 and one warning line names it."""
+    parameters' `pose_sd_m` and `pose_drift` and a bounded shared error `bounded` = (sd [m], correlation time
+    [s]); an anchor whose range times are unknown (`anchor_times`) gets 0 and one warning line names it."""
     out = np.zeros((est.shape[0], 3, 3))
-    if p.pose_sd_m <= 0 and p.pose_drift <= 0:
+    if p.pose_sd_m <= 0 and p.pose_drift <= 0 and bounded[0] <= 0:
         return out
     times = anchor_times(dataset, groups)
     pos, rng, mask = (np.asarray(v) for v in (groups.position, groups.range, groups.mask))
@@ -117,6 +153,7 @@ def pose_error_covariances(dataset, groups, est: np.ndarray, p, method: str) -> 
             t0,
             bool(getattr(p, "bias", True)),
             float(getattr(p, "min_scale_m", 0.05)),
+            *bounded,
         )
     if missing:
         logging.getLogger("jaxcal").warning(
