@@ -18,7 +18,7 @@ over anchors, 3-D over the finite coordinates and horizontal).
 
 Usage:
     python benchmarks/uncertainty_trajectory.py [--methods nls,ls] [--sim-seeds 0-19 | 1,3,5] [--no-real]
-        [--family alternate|drift|clean] [--stated-drift] [--drift-estimate on|off]
+        [--family alternate|drift|clean] [--stated-drift] [--drift-estimate on|off] [--drift-model auto|drift|bounded]
 """
 
 from __future__ import annotations
@@ -136,6 +136,7 @@ def main(argv=None) -> int:
     ap.add_argument("--family", choices=("alternate", "drift", "clean"), default="alternate")
     ap.add_argument("--stated-drift", action="store_true", help="pass the campaign's drift as pose_drift")
     ap.add_argument("--drift-estimate", choices=("on", "off", "default"), default="default", help="nls estimate_drift")
+    ap.add_argument("--drift-model", choices=("auto", "drift", "bounded"), default=None, help="nls drift_model")
     args = ap.parse_args(argv)
     logging.getLogger("jaxcal").setLevel(logging.ERROR)
     from jaxcal.methods import calibrate
@@ -143,6 +144,8 @@ def main(argv=None) -> int:
 
     methods = args.methods.split(",")
     off = {} if args.drift_estimate == "default" else {"estimate_drift": args.drift_estimate == "on"}
+    if args.drift_model is not None:
+        off["drift_model"] = args.drift_model
 
     def run(ds, m, params):
         res = calibrate(ds, m, params={**off, **(params or {})} if m == "nls" else params)

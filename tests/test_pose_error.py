@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from jaxcal.errors import JaxcalError
 from jaxcal.trajectory import nls
 from jaxcal.trajectory.pose_error import pose_error_covariance
 from test_nls import lissajous
@@ -166,11 +167,25 @@ def test_nls_widens_by_the_estimated_pose_error_states_it_and_keeps_positions(ca
         np.testing.assert_allclose(on.covariance[a], on.covariance[a].T)
     stated = nls.NLSParams(pose_drift=0.02, estimate_drift=True)
     assert drift_for_covariance(ds, None, None, None, None, stated, "nls") == (stated, {}, None)
+    # the user names the pose source's kind (`drift_model`): that model is propagated, whatever fits better
+    for kind in ("drift", "bounded"):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="jaxcal"):
+            told = nls.calibrate(ds, {"mirror_profile": 0, "drift_model": kind})  # turns the estimate on
+        np.testing.assert_allclose(told.position, off.position)
+        assert told.params["info_pose_error_model"] == kind
+        lines = [r.getMessage() for r in caplog.records if "pose_drift not stated" in r.getMessage()]
+        assert len(lines) == 1 and f"drift_model={kind}" in lines[0]
+        if kind == "drift":
+            assert told.params["pose_drift"] == told.params["info_pose_drift_upper"] > 0.01
+        else:
+            assert told.params["pose_drift"] == 0 and told.params["info_pose_bounded_sd_m"] > 0
+    with pytest.raises(JaxcalError, match="parameter drift_model: expected one of auto, drift, bounded"):
+        nls.calibrate(ds, {"estimate_drift": True, "drift_model": "odometry"})
 
 
 @pytest.mark.parametrize("bad", [{"pose_sd_m": -0.1}, {"pose_drift": float("nan")}])
 def test_negative_pose_error_is_refused(bad):
-    from jaxcal.errors import JaxcalError
 
     with pytest.raises(JaxcalError, match=f"parameter {next(iter(bad))}: must be"):
         nls.NLSParams(**bad)

@@ -62,7 +62,15 @@ from scipy.optimize import brentq, minimize
 from jaxcal.blas_threads import one_blas_thread
 from jaxcal.trajectory.pose_error import anchor_times, pose_error_covariances
 
-__all__ = ["DriftEstimate", "cell_statistics", "reml_terms", "reml_loglik", "estimate_drift", "drift_for_covariance"]
+__all__ = [
+    "MODELS",
+    "DriftEstimate",
+    "cell_statistics",
+    "reml_terms",
+    "reml_loglik",
+    "estimate_drift",
+    "drift_for_covariance",
+]
 
 SCALES = np.array([1e-4, 1e-2, 1e-2])  # typical q^2 [m^2/s], tau^2 and nu^2 [m^2]: the optimiser's units
 UPPER_DROP = 0.5  # the upper bound: where the profile REML log-likelihood is this far below its maximum (1 sd)
@@ -70,6 +78,9 @@ UPPER_DROP = 0.5  # the upper bound: where the profile REML log-likelihood is th
 BOUNDED_CORR_S = (20.0, 60.0, 180.0, 600.0, 1800.0, 5400.0)
 # the bounded alternative is propagated where it fits at most this much worse [log-likelihood] than the drift
 SELECT_MARGIN = 2.0
+# `drift_model`: what the user knows of the pose source. A relative one (odometry, visual-inertial, wheel) drifts
+# from the first pose, an absolute one (motion capture, total station, RTK) has a bounded error; "auto": the data
+MODELS = ("auto", "drift", "bounded")
 LOCAL_CORR_S = 2.5  # correlation time [s] of the per-anchor offsets and shifts (chosen on odd seeds, against 5 and 10)
 
 
@@ -217,6 +228,7 @@ def estimate_drift(
     min_scale_m: float = 0.05,
     min_cells: int = 6,
     corr_s: float = LOCAL_CORR_S,
+    model: str = "auto",
 ) -> DriftEstimate:
     """REML estimate of the pose drift intensity from the ranges at a fit (module docstring).
 
@@ -226,6 +238,9 @@ def estimate_drift(
             anchor's ranges). max_cells: at most this many cells, evenly spaced in time, enter the likelihood (it
             costs (4 cells)^3; sigma^2 is from every cell). min_scale_m: Cauchy scale floor [m].
         min_cells: fewer usable cells give NaN. corr_s: correlation time [s] of the local terms.
+        model: which shared error is propagated (`DriftEstimate.model`): "auto" (the bounded one where it fits
+            within `SELECT_MARGIN` of the drift, else the drift), "drift" or "bounded" (what the user knows of the
+            pose source, which the ranges cannot tell apart; `MODELS`).
     """
     gaps = [float(np.median(np.diff(a[2]))) for a in anchors if len(a[2]) > 1]
     window_s = max(window_s, 4.0 * float(np.median(gaps))) if gaps else window_s  # about 4 ranges a cell at least
@@ -289,7 +304,8 @@ def estimate_drift(
     q_hat = float(np.sqrt(theta[0]))
     upper = upper_bound(q_hat, top, 1.0, 0.004, 1.0, terms)
     b_sd = float(np.sqrt(max(b_fit.x[0], 0.0) * SCALES[0] * 100.0))
-    model = "bounded" if bounded >= top - SELECT_MARGIN else "drift"
+    if model == "auto":
+        model = "bounded" if bounded >= top - SELECT_MARGIN else "drift"
     b_upper = float("nan")
     if model == "bounded":
         nuisance0 = b_fit.x[1:].copy()
@@ -312,11 +328,13 @@ def estimate_drift(
 
 def drift_for_covariance(dataset, groups, est, bias, cov, p, method: str):
     """The pose error `finish` should propagate: none where `pose_drift` is stated (> 0) or `estimate_drift` is
-    off (`p` itself); else `estimate_drift`'s model at the fit (`est` (A, 3), `bias` (A,)): the drift's upper bound
-    as `pose_drift`, or the bounded shared error (sd's upper bound, correlation time) as an extra covariance,
-    and one line (logger "jaxcal") with the values and how much it widens the anchors' horizontal sd over `cov`
-    (A, 3, 3). Returns (params, info entries, extra (A, 3, 3) covariance or None)."""
-    if p.pose_drift > 0 or not getattr(p, "estimate_drift", False):
+    off and `drift_model` is "auto" (`p` itself); else `estimate_drift`'s model at the fit (`est` (A, 3), `bias`
+    (A,)): the drift's upper bound as `pose_drift`, or the bounded shared error (sd's upper bound, correlation
+    time) as an extra covariance, and one line (logger "jaxcal") with the values and how much it widens the
+    anchors' horizontal sd over `cov` (A, 3, 3). Returns (params, info entries, extra (A, 3, 3) covariance or
+    None)."""
+    chosen = str(getattr(p, "drift_model", "auto"))
+    if p.pose_drift > 0 or not (getattr(p, "estimate_drift", False) or chosen != "auto"):
         return p, {}, None
     times = anchor_times(dataset, groups)
     pos, rng, mask = (np.asarray(v) for v in (groups.position, groups.range, groups.mask))
@@ -327,7 +345,7 @@ def drift_for_covariance(dataset, groups, est, bias, cov, p, method: str):
         if np.isfinite(est[a]).all() and mask[a].sum() >= max(p.min_ranges, 4) and times[a] is not None
     ]
     t0 = float(np.asarray(dataset.pose_time)[0])
-    fit = estimate_drift(anchors, t0, min_scale_m=float(getattr(p, "min_scale_m", 0.05)))
+    fit = estimate_drift(anchors, t0, min_scale_m=float(getattr(p, "min_scale_m", 0.05)), model=chosen)
     info = {"pose_drift_estimate": fit.drift, "pose_drift_upper": fit.upper, "pose_drift_cells": fit.cells}
     info.update(pose_drift_log_lr_bounded=fit.log_lr_bounded, pose_error_model=fit.model, pose_error_propagated=False)
     if fit.model == "bounded":
@@ -341,14 +359,20 @@ def drift_for_covariance(dataset, groups, est, bias, cov, p, method: str):
         what = (
             f"a bounded shared error of sd {fit.bounded_sd_m:.3g} m, at most {fit.bounded_upper_m:.3g} m within one "
             f"sd, correlated over {fit.bounded_corr_s:.0f} s (a random-walk drift fits {fit.log_lr_bounded:+.1f} in "
-            f"log-likelihood, within {SELECT_MARGIN:g}), which is used"
+            + (
+                f"log-likelihood, within {SELECT_MARGIN:g}), which is used"
+                if chosen == "auto"
+                else "log-likelihood; drift_model=bounded), which is used"
+            )
         )
     else:
         if not (np.isfinite(fit.upper) and fit.upper > 0):
             return p, info, None
         q, extra_cov = eqx.tree_at(lambda r: r.pose_drift, p, fit.upper), None
         extra = pose_error_covariances(dataset, groups, est, q, method)
-        what = f"a drift of {fit.drift:.3g} m/sqrt(s), at most {fit.upper:.3g} within one sd, which is used"
+        what = f"a drift of {fit.drift:.3g} m/sqrt(s), at most {fit.upper:.3g} within one sd, which is used" + (
+            "" if chosen == "auto" else " (drift_model=drift)"
+        )
     base = np.trace(np.asarray(cov, float)[:, :2, :2], axis1=1, axis2=2)
     ok = np.isfinite(base) & (base > 0) & np.isfinite(est).all(axis=1)
     ratio = np.sqrt(1.0 + np.trace(extra[:, :2, :2], axis1=1, axis2=2)[ok] / base[ok])

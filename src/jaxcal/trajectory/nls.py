@@ -35,7 +35,7 @@ from jaxcal.errors import JaxcalError
 from jaxcal.params import with_overrides
 from jaxcal.precision import in_float64
 from jaxcal.trajectory.common import TrajectoryParams, finish, multilaterate, report_fits, widen_covariance
-from jaxcal.trajectory.drift import drift_for_covariance
+from jaxcal.trajectory.drift import MODELS, drift_for_covariance
 from jaxcal.trajectory.offset import summary
 from jaxcal.trajectory.poses import estimate_offset_fit, fit_poses, prepare, prepare_poses
 
@@ -93,12 +93,17 @@ class NLSParams(TrajectoryParams):
             (`pose_sd_m`). Off by default: on the hanyang drives it still widens well-calibrated covariances
             about 2.5-fold in sd (NEES/dof 1.14 -> 0.19), and on the simulated drift family its worst campaign is
             3.75 (docs/benchmarks/uncertainty.md, twelfth round).
+        drift_model: which shared pose error `estimate_drift` propagates: "auto" (as above: the ranges rarely tell
+            the two apart, so mostly the bounded one), "drift" (a relative pose source: odometry, visual-inertial,
+            wheel; its error grows from the first pose) or "bounded" (an absolute one: motion capture, total
+            station, RTK). "drift" or "bounded" turns `estimate_drift` on.
         min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s: as for `ls`, and so are
             max_gap_s, time_offset_s, max_offset_s.
     """
 
     estimate_offset: bool = True
     estimate_drift: bool = False
+    drift_model: str = "auto"
     loss: str = "cauchy"
     loss_scale_m: float = 0.0
     min_scale_m: float = 0.05
@@ -409,6 +414,8 @@ def calibrate(dataset, params=None, config=None) -> Result:
     p = with_overrides(NLSParams(), params)
     if p.loss not in ("cauchy", "huber", "l2"):
         raise JaxcalError(f"parameter loss: expected cauchy, huber or l2, got {p.loss!r}")
+    if p.drift_model not in MODELS:
+        raise JaxcalError(f"parameter drift_model: expected one of {', '.join(MODELS)}, got {p.drift_model!r}")
     if not p.cov_cell_m >= 0:
         raise JaxcalError(
             f"parameter cov_cell_m: must be a number >= 0 [m] (0 = cells from cov_cells), got {p.cov_cell_m}"
@@ -420,9 +427,9 @@ def calibrate(dataset, params=None, config=None) -> Result:
     # the route cells and the drift estimate enter only the covariances below: the fit runs with their defaults,
     # so a change of them reuses its compiled programs (they are static fields of `p`)
     fit_p = eqx.tree_at(
-        lambda q: (q.cov_cell_m, q.cov_cells, q.estimate_drift),
+        lambda q: (q.cov_cell_m, q.cov_cells, q.estimate_drift, q.drift_model),
         p,
-        (NLSParams.cov_cell_m, NLSParams.cov_cells, NLSParams.estimate_drift),
+        (NLSParams.cov_cell_m, NLSParams.cov_cells, NLSParams.estimate_drift, NLSParams.drift_model),
     )
     groups, info = prepare_offset(dataset, fit_p)
 
