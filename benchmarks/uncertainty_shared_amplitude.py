@@ -313,10 +313,11 @@ def _batch_components(rec, d_t: np.ndarray) -> np.ndarray:
     return out
 
 
-def component_posterior(rec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(t as fitted (3 + Q,), mu, C): the weighted moment estimate of (t_I, t_D, t_N, t_S per pattern) without the
+def component_posterior(rec) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(t as fitted (3 + Q,), mu, C, h): the weighted moment estimate of (t_I, t_D, t_N, t_S per pattern) without the
     sign constraint (mu) and its covariance C under Gaussian residuals of the fitted covariance R
-    (Cov(r_k r_l, r_m r_n) = R_km R_ln + R_kn R_lm). Dense (M^2 / 2 moment equations squared): small networks only."""
+    (Cov(r_k r_l, r_m r_n) = R_km R_ln + R_kn R_lm); h (3 + Q,) sum_k wn_k^2 X_a,kk, each component's share of
+    the weighted residual sum of squares. Dense (M^2 / 2 moment equations squared): small networks only."""
     jac, e, w, spread, i, j, n_nodes, prior, shared = rec["cap"]["amp"]["inputs"]
     m, s = len(e), np.asarray(spread, float)
     pat = s[:, None] if shared is None else np.asarray(shared, float).reshape(m, -1)
@@ -334,7 +335,7 @@ def component_posterior(rec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     r = sum(tk * x for tk, x in zip(t, xs, strict=True))
     cov_y = (r[np.ix_(ku, ku)] * r[np.ix_(lu, lu)] + r[np.ix_(ku, lu)] * r[np.ix_(lu, ku)]) * np.outer(om, om)
     h = np.linalg.pinv(design.T @ design) @ design.T
-    return t, mu, h @ cov_y @ h.T
+    return t, mu, h @ cov_y @ h.T, np.array([wn**2 @ np.diag(x) for x in xs])
 
 
 def _truncated(mu, sd, median: bool = False):
@@ -357,9 +358,15 @@ def expected_components(rec, how: str = "joint", only: str = "IDN", n_draws: int
     how: `joint` E[t | t >= 0] of all jointly (Monte Carlo; tsamp's `texp`); `marg` each component's
     own truncated mean (closed form); `margz` the same for the zeroed components only; `cond` / `condmed` each
     zeroed component's truncated mean / median given the others at their fitted values (closed form);
-    `setmed` the zeroed components' joint truncated median given the nonzero ones (Monte Carlo). `only`: which
-    of t_I, t_D, t_N may change (e.g. "N")."""
-    t, mu, c = component_posterior(rec)
+    `setmed` the zeroed components' joint truncated median given the nonzero ones (Monte Carlo); a suffix `rs`
+    (`margrs`, `condrs`) rescales t_I, t_D, t_N so that the weighted residual variance they explain,
+    sum_a t_a sum_k wn_k^2 X_a,kk, is the fit's (the data pin the total; the split is what is uncertain).
+    `only`: which of t_I, t_D, t_N may change (e.g. "N")."""
+    if how.endswith("rs"):
+        t, _, _, h = component_posterior(rec)
+        ex, h = expected_components(rec, how[:-2], only, n_draws), h[:3]
+        return np.r_[ex[:3] * (h @ t[:3] / (h @ ex[:3]) if h @ ex[:3] > 0 else 1.0), ex[3:]]
+    t, mu, c, _ = component_posterior(rec)
     sd = np.sqrt(np.maximum(np.diag(c), 0.0))
     zero = t <= 0
     if how == "joint":
