@@ -361,17 +361,24 @@ def expected_components(rec, how: str = "joint", only: str = "IDN", n_draws: int
     `setmed` the zeroed components' joint truncated median given the nonzero ones (Monte Carlo); a suffix `rs`
     (`margrs`, `condrs`) rescales t_I, t_D, t_N so that the weighted residual variance they explain,
     sum_a t_a sum_k wn_k^2 X_a,kk, is the fit's (the data pin the total; the split is what is uncertain).
+    `total`: E[t | t >= 0] jointly at the fit's (t_I, t_D, t_N) share of that total (Monte Carlo).
     `only`: which of t_I, t_D, t_N may change (e.g. "N")."""
     if how.endswith("rs"):
         t, _, _, h = component_posterior(rec)
         ex, h = expected_components(rec, how[:-2], only, n_draws), h[:3]
         return np.r_[ex[:3] * (h @ t[:3] / (h @ ex[:3]) if h @ ex[:3] > 0 else 1.0), ex[3:]]
-    t, mu, c, _ = component_posterior(rec)
+    t, mu, c, h = component_posterior(rec)
     sd = np.sqrt(np.maximum(np.diag(c), 0.0))
     zero = t <= 0
-    if how == "joint":
+    if how == "total":  # the fit's total where it has one (else nothing to split: as fitted)
+        h3 = np.r_[h[:3], 0.0 * h[3:]]
+        hc = c @ h3
+        if not (h3 @ hc > 0 and h3 @ t > 0):
+            return t
+        mu, c = mu + hc * (h3 @ (t - mu)) / (h3 @ hc), c - np.outer(hc, hc) / (h3 @ hc)
+    if how in ("joint", "total"):
         x = _draws(mu, c, n_draws)
-        ex = x.mean(axis=0) if len(x) > 100 else np.maximum(mu, 0.0)
+        ex = x.mean(axis=0) if len(x) > 100 else (t if how == "total" else np.maximum(mu, 0.0))
     elif how in ("marg", "margz"):
         ex = _truncated(mu, sd)
         ex = np.where(zero | (how == "marg"), ex, t)
