@@ -17,9 +17,9 @@ well-connected nodes, NEES/dof per network (median, worst) and the nodes outside
 `uncertainty_families.py` does. Rules (`--rules`, comma-separated): `main` (as run: b_hat^2 + var(b_hat),
 the flat prior), `gauss:T` (Gaussian prior N(0, T) on b), `hcauchy:S` (half-Cauchy of scale S spreads,
 b >= 0), `hflat` (flat on b >= 0), `hc` (flat, var(b_hat) from the residuals (HC0) instead of the fitted
-components), `tI:V` / `tN:V` (batch only: V m^2 added to t_I / t_N, t_S as run), `texp` (batch only: t_I,
-t_D, t_N raised to their expected values given the moment estimate and its sampling covariance,
-`expected_components`; t_S as run).
+components), `tI:V` / `tN:V` (batch and pgp: V m^2 added to t_I / t_N, t_S as run), `texp[:HOW[:ONLY]]` (batch
+and pgp: t_I, t_D, t_N raised to their values given the moment estimate and its sampling covariance,
+`expected_components`; t_S as run; `texpfull:...` sets them, lowering too).
 
 Usage (B = benchmarks/uncertainty_shared_amplitude.py):
     python B capture --family weak --seeds 1,3 --methods "batch;pgp" --out DIR
@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.stats import chi2, norm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -291,8 +291,9 @@ def _hc(rec) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _batch_components(rec, d_t: np.ndarray) -> np.ndarray:
-    """batch only: (N, 2, 2) final covariances with d_t (3,) m^2 added to (t_I, t_D, t_N), t_S as run (the union
-    with the Laplace covariance taken as the pair covariance, as in `cov_at`)."""
+    """(N, 2, 2) final covariances with d_t (3,) m^2 added to (t_I, t_D, t_N), t_S as run (batch: the union with
+    the Laplace covariance taken as the pair covariance, as in `cov_at`; pgp: the pair covariance's block of the
+    free coordinates, exact). d_t may be negative where the sum stays non-negative."""
     jac, e, w, spread, i, j, n_nodes, prior, _shared = rec["cap"]["amp"]["inputs"]
     s, m = np.asarray(spread, float), len(e)
     g = np.linalg.solve((jac.T * w) @ jac + np.diag(prior), jac.T * w)
@@ -312,29 +313,93 @@ def _batch_components(rec, d_t: np.ndarray) -> np.ndarray:
     return out
 
 
-def expected_components(rec, n_draws: int = 200_000) -> np.ndarray:
-    """(4,) E[t | t >= 0] of (t_I, t_D, t_N, t_S) under a Gaussian approximation of the weighted moment
-    estimate's sampling distribution: its unconstrained least-squares value and its covariance under Gaussian
-    residuals of the fitted covariance R (Cov(r_k r_l, r_m r_n) = R_km R_ln + R_kn R_lm), by Monte Carlo.
-    Dense (M^2 / 2 moment equations squared): for the family networks only."""
-    jac, e, w, spread, i, j, n_nodes, prior, _shared = rec["cap"]["amp"]["inputs"]
+def component_posterior(rec) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(t as fitted (3 + Q,), mu, C, h): the weighted moment estimate of (t_I, t_D, t_N, t_S per pattern) without the
+    sign constraint (mu) and its covariance C under Gaussian residuals of the fitted covariance R
+    (Cov(r_k r_l, r_m r_n) = R_km R_ln + R_kn R_lm); h (3 + Q,) sum_k wn_k^2 X_a,kk, each component's share of
+    the weighted residual sum of squares. Dense (M^2 / 2 moment equations squared): small networks only."""
+    jac, e, w, spread, i, j, n_nodes, prior, shared = rec["cap"]["amp"]["inputs"]
     m, s = len(e), np.asarray(spread, float)
+    pat = s[:, None] if shared is None else np.asarray(shared, float).reshape(m, -1)
     proj = np.eye(m) - jac @ np.linalg.solve((jac.T * w) @ jac + np.diag(prior), jac.T * w)
     z = np.zeros((m, n_nodes))
     z[np.arange(m), i] = z[np.arange(m), j] = 1.0
-    xs = [proj @ v @ proj.T for v in (np.eye(m), np.diag(s * s), z @ z.T, np.outer(s, s))]
+    comps = [np.eye(m), np.diag(s * s), z @ z.T] + [np.outer(c, c) for c in pat.T]
+    xs = [proj @ v @ proj.T for v in comps]
     wn = w / w.max()
     ku, lu = np.triu_indices(m)
     om = wn[ku] * wn[lu]
     design = np.column_stack([x[ku, lu] for x in xs]) * om[:, None]
     mu = np.linalg.lstsq(design, np.outer(e, e)[ku, lu] * om, rcond=None)[0]
-    r = sum(t * x for t, x in zip(rec["cap"]["t"], xs, strict=True))
+    t = np.asarray(rec["cap"]["t"], float)
+    r = sum(tk * x for tk, x in zip(t, xs, strict=True))
     cov_y = (r[np.ix_(ku, ku)] * r[np.ix_(lu, lu)] + r[np.ix_(ku, lu)] * r[np.ix_(lu, ku)]) * np.outer(om, om)
     h = np.linalg.pinv(design.T @ design) @ design.T
-    lam, vec = np.linalg.eigh(h @ cov_y @ h.T)
-    x = mu + np.random.default_rng(0).standard_normal((n_draws, 4)) @ (vec * np.sqrt(np.maximum(lam, 0))).T
-    ok = (x >= 0).all(axis=1)
-    return x[ok].mean(axis=0) if ok.sum() > 100 else np.maximum(mu, 0.0)
+    return t, mu, h @ cov_y @ h.T, np.array([wn**2 @ np.diag(x) for x in xs])
+
+
+def _truncated(mu, sd, median: bool = False):
+    """Mean (or median) of N(mu, sd^2) truncated to >= 0, closed form (mu + sd phi(a) / Phi(a), a = mu / sd)."""
+    mu, sd = np.asarray(mu, float), np.asarray(sd, float)
+    a = mu / np.maximum(sd, 1e-300)
+    val = mu + sd * (norm.isf(np.exp(norm.logcdf(a)) / 2) if median else np.exp(norm.logpdf(a) - norm.logcdf(a)))
+    return np.where(sd > 0, np.maximum(val, 0.0), np.maximum(mu, 0.0))
+
+
+def _draws(mean, cov, n_draws):
+    lam, vec = np.linalg.eigh(cov)
+    x = mean + np.random.default_rng(0).standard_normal((n_draws, len(mean))) @ (vec * np.sqrt(np.maximum(lam, 0))).T
+    return x[(x >= 0).all(axis=1)]
+
+
+def expected_components(rec, how: str = "joint", only: str = "IDN", n_draws: int = 200_000) -> np.ndarray:
+    """(3 + Q,) the components given the data under `component_posterior` restricted to t >= 0 (flat prior).
+
+    how: `joint` E[t | t >= 0] of all jointly (Monte Carlo; tsamp's `texp`); `marg` each component's
+    own truncated mean (closed form); `margz` the same for the zeroed components only; `cond` / `condmed` each
+    zeroed component's truncated mean / median given the others at their fitted values (closed form);
+    `setmed` the zeroed components' joint truncated median given the nonzero ones (Monte Carlo); a suffix `rs`
+    (`margrs`, `condrs`) rescales t_I, t_D, t_N so that the weighted residual variance they explain,
+    sum_a t_a sum_k wn_k^2 X_a,kk, is the fit's (the data pin the total; the split is what is uncertain).
+    `total`: E[t | t >= 0] jointly at the fit's (t_I, t_D, t_N) share of that total (Monte Carlo).
+    `only`: which of t_I, t_D, t_N may change (e.g. "N")."""
+    if how.endswith("rs"):
+        t, _, _, h = component_posterior(rec)
+        ex, h = expected_components(rec, how[:-2], only, n_draws), h[:3]
+        return np.r_[ex[:3] * (h @ t[:3] / (h @ ex[:3]) if h @ ex[:3] > 0 else 1.0), ex[3:]]
+    t, mu, c, h = component_posterior(rec)
+    sd = np.sqrt(np.maximum(np.diag(c), 0.0))
+    zero = t <= 0
+    if how == "total":  # the fit's total where it has one (else nothing to split: as fitted)
+        h3 = np.r_[h[:3], 0.0 * h[3:]]
+        hc = c @ h3
+        if not (h3 @ hc > 0 and h3 @ t > 0):
+            return t
+        mu, c = mu + hc * (h3 @ (t - mu)) / (h3 @ hc), c - np.outer(hc, hc) / (h3 @ hc)
+    if how in ("joint", "total"):
+        x = _draws(mu, c, n_draws)
+        ex = x.mean(axis=0) if len(x) > 100 else (t if how == "total" else np.maximum(mu, 0.0))
+    elif how in ("marg", "margz"):
+        ex = _truncated(mu, sd)
+        ex = np.where(zero | (how == "marg"), ex, t)
+    elif how in ("cond", "condmed"):
+        p, ex = np.linalg.pinv(c), t.copy()
+        for k in np.flatnonzero(zero & (p.diagonal() > 0)):
+            o = np.arange(t.size) != k
+            mc = mu[k] - p[k, o] @ (t[o] - mu[o]) / p[k, k]
+            ex[k] = _truncated(mc, 1.0 / np.sqrt(p[k, k]), how == "condmed")
+    elif how == "setmed":
+        zk, nk, ex = np.flatnonzero(zero), np.flatnonzero(~zero), t.copy()
+        if zk.size:
+            p = np.linalg.pinv(c)
+            cz = np.linalg.pinv(p[np.ix_(zk, zk)])
+            x = _draws(mu[zk] - cz @ p[np.ix_(zk, nk)] @ (t[nk] - mu[nk]), cz, n_draws)
+            if len(x) > 100:
+                ex[zk] = np.median(x, axis=0)
+    else:
+        raise ValueError(f"unknown rule texp:{how}")
+    keep = np.array(["IDN"[k] not in only for k in range(3)] + [True] * (t.size - 3))
+    return np.where(keep, t, ex)
 
 
 def rule_cov(rec: dict, rule: str) -> np.ndarray:
@@ -344,8 +409,10 @@ def rule_cov(rec: dict, rule: str) -> np.ndarray:
     if name == "main" or cap is None or not cap["basis"]:
         return cov_at(rec, None)
     amp = cap["amp"]
-    if name == "texp":
-        return _batch_components(rec, np.maximum(expected_components(rec)[:3] - cap["t"][:3], 0.0))
+    if name in ("texp", "texpfull"):  # texp[:HOW[:ONLY]] raises t_I, t_D, t_N to the rule's values, texpfull sets them
+        how, _, only = (arg or "joint").partition(":")
+        d_t = expected_components(rec, how, only or "IDN")[:3] - cap["t"][:3]
+        return _batch_components(rec, d_t if name.endswith("full") else np.maximum(d_t, 0.0))
     if name in ("tI", "tN"):
         d_t = np.zeros(3)
         d_t[0 if name == "tI" else 2] = float(arg)
@@ -394,8 +461,8 @@ def compare(args) -> None:
     for fam, meth in sorted({key(r) for r in recs}):
         group = [r for r in recs if key(r) == (fam, meth)]
         for rule in args.rules.split(","):
-            if rule.partition(":")[0] in ("tI", "tN", "texp") and not meth.startswith(("batch", "pgp+batch")):
-                continue  # batch's free-coordinate layout only
+            if rule.partition(":")[0] in ("tI", "tN", "texp", "texpfull") and meth.startswith("parametric"):
+                continue  # batch's and pgp's free-coordinate layouts only
             figs = [(r["seed"], r.get("draw"), network_figures(r, rule_cov(r, rule))) for r in group]
             figs = [x for x in figs if x[2] is not None]
             if not figs:
