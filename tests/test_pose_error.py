@@ -214,8 +214,10 @@ def test_nls_widens_by_the_estimated_pose_error_states_it_and_keeps_positions(ca
         np.testing.assert_allclose(on.covariance[a], on.covariance[a].T)
         grown.append(np.trace(extra[:2, :2]))
     assert max(grown) > 0  # the part of the walk that nls's stretch jackknife cannot see
-    stated = nls.NLSParams(pose_drift=0.02, estimate_drift=True)
-    assert drift_for_covariance(ds, None, None, None, None, stated, "nls") == (stated, {}, None)
+    # a statement wins: no estimate
+    told_p = (nls.NLSParams(pose_drift=0.02, estimate_drift=True), nls.NLSParams(pose_sd_m=0.1, drift_model="drift"))
+    for stated in told_p:
+        assert drift_for_covariance(ds, None, None, None, None, stated, "nls") == (stated, {}, None)
     # the user names the pose source's kind (`drift_model`): that model is propagated, whatever fits better
     for kind in ("drift", "bounded"):
         caplog.clear()
