@@ -145,7 +145,7 @@ def _estimated_pose_error(params: dict) -> str:
     if params.get("info_pose_error_model") == "bounded":
         sd, corr = (params.get(f"info_pose_bounded_{k}", float("nan")) for k in ("sd_m", "corr_s"))
         return f"a bounded pose error of sd {sd:.3g} m over {corr:.0f} s"
-    return f"a pose drift of {params.get('pose_drift', float('nan')):.3g} m/sqrt(s)"
+    return f"a pose drift of {params.get('info_pose_drift_upper', float('nan')):.3g} m/sqrt(s)"
 
 
 def _pose_error_stated(params: dict) -> bool:

@@ -27,6 +27,17 @@ s^2 exp(-|s - t| / T); what `jaxcal.trajectory.drift` propagates where the range
 drift) adds s^2 sum_ij v_i v_j^T exp(-|t_i - t_j| / T) to M, also in one pass: with R_i = sum_(j < i) v_j
 exp(-(t_i - t_j) / T) = exp(-(t_i - t_(i-1)) / T) (R_(i-1) + v_(i-1)), the double sum is sum_i v_i v_i^T +
 R_i v_i^T + v_i R_i^T (`_exp_kernel_sum`; in blocks of 20 T, where the recursion is a scaled cumulative sum).
+
+What a jackknife already holds (`seen_by`, for an error estimated from the ranges, `jaxcal.trajectory.drift`).
+nls widens its covariance to a cluster jackknife over G consecutive stretches of each anchor's ranges; a shared
+error that changes between the stretches moves the leave-one-out fits, so that jackknife already holds part of it
+(all of an error correlated over much less than a stretch, none of a constant one). Its expectation under the
+kernel is exact for the linearised fit: leaving stretch g out moves the fit by C_g sum_(i in g) w_i J_i r_i, with
+r = (I - J A^-1 J^T W) e the residuals and C_g = (A - A_g)^-1 (the leverage capped as in nls), linear in e, so
+E[J] = (G - 1) / G sum_g sum_h sum_ij c_gi^h c_gj^h^T k(t_i, t_j), a kernel sum as above with the columns c_gi =
+C_g (1[i in g] w_i J_i - A_g A^-1 w_i J_i) u_ih. With `seen_by` = G the covariance is the PSD part of the
+propagated one less E[J]: what the stretches cannot show (the jackknife can hold more than the propagation in a
+direction the fit determines mostly from one stretch; that direction gets nothing).
 """
 
 from __future__ import annotations
@@ -50,6 +61,7 @@ def pose_error_covariance(
     min_scale_m: float = 0.05,
     bounded_sd_m: float = 0.0,
     bounded_corr_s: float = 1.0,
+    seen_by: int = 0,
 ) -> np.ndarray:
     """(3, 3) covariance [m^2] of one anchor's estimate from the stated pose error (module docstring).
 
@@ -60,6 +72,8 @@ def pose_error_covariance(
         min_scale_m: floor of the Cauchy scale [m].
         bounded_sd_m, bounded_corr_s: sd s [m] and correlation time T [s] of a bounded shared error (kernel
             s^2 exp(-|s - t| / T), module docstring); 0 = none.
+        seen_by: G > 1: only the part a cluster jackknife over G consecutive stretches of these ranges does not
+            hold (the PSD part of the propagated covariance less that jackknife's expectation, module docstring).
     """
     d = np.asarray(pos, float) - np.asarray(anchor, float)
     dist = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
@@ -72,17 +86,49 @@ def pose_error_covariance(
     jac = np.column_stack([-u, np.ones(u.shape[0])]) if bias else -u
     a_mat = (jac * w[:, None]).T @ jac
     tau = np.maximum(np.asarray(time, float) - t0, 0.0)
-    dtau = np.diff(np.concatenate([[0.0], tau]))
-    m = np.zeros_like(a_mat)
-    for h in range(2):
-        s = np.cumsum((jac * (w * u[:, h])[:, None])[::-1], axis=0)[::-1]  # S_k = sum over i >= k of v_i
-        m += sd_m**2 * np.outer(s[0], s[0]) + drift**2 * (s * dtau[:, None]).T @ s
-        if bounded_sd_m > 0:
-            m += bounded_sd_m**2 * _exp_kernel_sum(jac * (w * u[:, h])[:, None], tau, bounded_corr_s)
+    kernel = (sd_m, drift, bounded_sd_m, bounded_corr_s)
     a_inv = np.linalg.pinv(a_mat)
-    c = (a_inv @ m @ a_inv)[:3, :3]
+    lever = jac * w[:, None] @ a_inv  # row i: A^-1 w_i J_i, how range i's error moves the fit
+    m = sum(_kernel_sum(lever * u[:, h : h + 1], tau, *kernel) for h in range(2))
+    if seen_by > 1:
+        m = m - _jackknife_expectation(jac, w, lever, a_mat, u, tau, kernel, seen_by)
+    c = m[:3, :3]
     lam, vec = np.linalg.eigh(0.5 * (c + c.T))  # PSD by construction; rounding can leave -1e-14 on a zero axis
     return (vec * np.maximum(lam, 0.0)) @ vec.T
+
+
+def _kernel_sum(v: np.ndarray, tau: np.ndarray, sd_m: float, drift: float, bounded_sd_m: float, corr_s: float):
+    """sum_ij v_i v_j^T k(tau_i, tau_j) for v (n, k), tau (n,) non-decreasing [s] from the first pose, and the
+    module docstring's kernel k (offset sd_m, drift, bounded error): in one pass."""
+    s = np.cumsum(v[::-1], axis=0)[::-1]  # S_k = sum over i >= k of v_i
+    dtau = np.diff(np.concatenate([[0.0], tau]))
+    m = sd_m**2 * np.outer(s[0], s[0]) + drift**2 * (s * dtau[:, None]).T @ s
+    if bounded_sd_m > 0:
+        m = m + bounded_sd_m**2 * _exp_kernel_sum(v, tau, corr_s)
+    return m
+
+
+def _jackknife_expectation(jac, w, lever, a_mat, u, tau, kernel, n_stretches: int, max_leverage: float = 0.99):
+    """E[J] (P, P): the expectation, under the pose error's kernel, of the cluster jackknife over `n_stretches`
+    consecutive stretches of the linearised fit (`jaxcal.trajectory.nls.robust_covariance`, its leverage cap
+    alike). Leaving stretch g out moves the fit by C_g sum_(i in g) w_i J_i r_i with r = e - J A^-1 J^T W e the
+    residuals (what the fit absorbed is gone) and C_g = (A - A_g)^-1: linear in the errors e_i = u_i . delta(t_i);
+    column i of the map is C_g (1[i in g] w_i J_i - A_g A^-1 w_i J_i), and its kernel sum is `_kernel_sum`'s."""
+    n = jac.shape[0]
+    label = (np.arange(n) * n_stretches) // max(n, 1)
+    lam, vec = np.linalg.eigh(0.5 * (a_mat + a_mat.T))
+    lam = np.maximum(lam, 1e-12 * max(float(np.sum(np.abs(lam))), 1e-300))
+    white = vec / np.sqrt(lam)  # W^T A W = I
+    jw = jac * w[:, None]
+    out = np.zeros_like(a_mat)
+    for g in range(n_stretches):
+        inside = label == g
+        a_g = jw[inside].T @ jac[inside]
+        mu, v = np.linalg.eigh(white.T @ (0.5 * (a_g + a_g.T)) @ white)
+        c_g = white @ (v * (1.0 / (1.0 - np.clip(mu, 0.0, max_leverage)))) @ v.T @ white.T
+        cols = (jw * inside[:, None] - lever @ a_g) @ c_g  # row i: (C_g (1[i in g] w_i J_i - A_g A^-1 w_i J_i))^T
+        out += sum(_kernel_sum(cols * u[:, h : h + 1], tau, *kernel) for h in range(2))
+    return (n_stretches - 1) / n_stretches * out
 
 
 def _exp_kernel_sum(v: np.ndarray, tau: np.ndarray, corr_s: float, block: float = 20.0) -> np.ndarray:
@@ -124,11 +170,13 @@ def anchor_times(dataset, groups) -> list[np.ndarray | None]:
 
 
 def pose_error_covariances(
-    dataset, groups, est: np.ndarray, p, method: str, bounded: tuple[float, float] = (0.0, 1.0)
+    dataset, groups, est: np.ndarray, p, method: str, bounded: tuple[float, float] = (0.0, 1.0), seen_by: int = 0
 ) -> np.ndarray:
-    """(A, 3, 3) `pose_error_covariance` of every anchor with a finite estimate (0 elsewhere) for the
-    parameters' `pose_sd_m` and `pose_drift` and a bounded shared error `bounded` = (sd [m], correlation time
-    [s]); an anchor whose range times are unknown (`anchor_times`) gets 0 and one warning line names it."""
+    """(A, 3, 3) `pose_error_covariance` of every anchor with a finite estimate (0 elsewhere) for the parameters'
+    `pose_sd_m` and `pose_drift` and a bounded shared error `bounded` = (sd [m], correlation time [s]), less what a
+    jackknife over `seen_by` stretches holds of it (0: nothing); an anchor whose range times are unknown
+    (`anchor_times`) gets 0 and one warning line names it.
+    """
     out = np.zeros((est.shape[0], 3, 3))
     if p.pose_sd_m <= 0 and p.pose_drift <= 0 and bounded[0] <= 0:
         return out
@@ -154,6 +202,7 @@ def pose_error_covariances(
             bool(getattr(p, "bias", True)),
             float(getattr(p, "min_scale_m", 0.05)),
             *bounded,
+            seen_by,
         )
     if missing:
         logging.getLogger("jaxcal").warning(
