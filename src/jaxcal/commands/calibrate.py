@@ -97,7 +97,7 @@ def run(args) -> int:
 
     from jaxcal.metrics import predicted_uncertainty
 
-    est = np.isfinite(result.position).all(axis=1)
+    est = np.isfinite(result.position).any(axis=1)  # placed; a row with a NaN coordinate counts in `partial`
     n_est, n = int(est.sum()), len(result.ids)
     missing = [result.ids[i] for i in np.flatnonzero(~est)]
     fixed = None
@@ -124,14 +124,23 @@ def run(args) -> int:
             "predicted_rmse_m": pred if np.isfinite(pred) else None,
         },
     )
-    partial = f" ({pu['partial']} with a coordinate not fixed)" if pu["partial"] else ""
+    some = est & ~np.isfinite(result.position).all(axis=1)
+    named = ", ".join(result.ids[i] for i in np.flatnonzero(some)[:8]) + (", ..." if some.sum() > 8 else "")
+    partial = f" ({pu['partial']} with a coordinate not fixed: {named})" if pu["partial"] else ""
     quality = f", predicted RMS uncertainty {pred:.3g} m" if np.isfinite(pred) else ", no covariance"
     drift_used = bool(result.params.get("info_pose_error_propagated", False))
+    estimated = "info_pose_error_model" in result.params  # nls looked for a shared pose error in the ranges
     if not mesh and np.isfinite(pred) and not _pose_error_stated(params) and not drift_used:
-        or_estimate = ", or --set estimate_drift=true" if args.method == "nls" else ""
-        quality += f" (poses taken as exact: state their error with --set pose_drift=... / pose_sd_m=...{or_estimate})"
+        seen = "the ranges show no shared pose error; otherwise " if estimated else ""
+        or_estimate = ", or --set estimate_drift=true" if args.method == "nls" and not estimated else ""
+        quality += (
+            f" ({seen}poses taken as exact: state their error with --set pose_drift=... / pose_sd_m=...{or_estimate})"
+        )
     elif not mesh and np.isfinite(pred) and drift_used:
-        quality += f" (with {_estimated_pose_error(result.params)} estimated from the ranges)"
+        widened = float(result.params.get("info_pose_error_widened", 1.0))
+        quality += (
+            f" (with {_estimated_pose_error(result.params)} estimated from the ranges: sd widened up to x{widened:.2f})"
+        )
     say(
         args,
         _summary(args.method, result.ids, est, fixed) + f"{partial}{quality} in {elapsed:.2f} s "

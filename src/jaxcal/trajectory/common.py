@@ -66,7 +66,7 @@ class TrajectoryParams(eqx.Module):
             [m / sqrt(s)] of a random-walk drift from the first pose (odometry). The ranges cannot show an
             error that moves the tag positions together (the anchor moves with them), so it is added to
             every anchor's covariance by linear propagation through the fit. 0 (default): poses exact (`nls`
-            can estimate the pose error from the ranges instead: its `estimate_drift`, off by default).
+            estimates the pose error from the ranges instead: its `estimate_drift`, on by default).
         order, knot_dt_s, max_gap_s: pose B-spline (order 4 = cubic; 0 = automatic).
         time_offset_s, estimate_offset, max_offset_s: pose minus range clock offset [s] and its search.
     """

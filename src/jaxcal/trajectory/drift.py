@@ -50,9 +50,9 @@ model, whose variance does not grow with the time since the first pose.
 What is added to nls's covariance is the part of the propagated error that its jackknife over `cov_clusters`
 stretches cannot see (`pose_error`'s `seen_by`): that covariance is already widened to the jackknife, which
 holds an error that changes between the stretches (on hanyang LOS, 20 s against stretches of ~58 s: all of it),
-so adding the whole propagation counted it twice (twelfth round: NEES/dof 1.14 -> 0.19 there). Still opt-in in nls
-(`estimate_drift`): on the simulated drift family the worst campaign stays above 3 (docs/benchmarks/uncertainty.md,
-thirteenth round).
+so adding the whole propagation counted it twice (twelfth round: NEES/dof 1.14 -> 0.19 there). On by default in nls
+(`estimate_drift`) since the thirteenth round; on the simulated drift family the worst campaign stays above 3
+(docs/benchmarks/uncertainty.md, thirteenth round).
 """
 
 from __future__ import annotations
