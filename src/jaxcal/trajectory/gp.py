@@ -178,6 +178,9 @@ class GPParams(TrajectoryParams):
         n_basis, basis_margin: `model=space` only: sine basis functions per horizontal axis (n_basis^2 in
             all) on the positions' box grown by the factor basis_margin (> 1); max_signal: the signal
             variance at most this times the variance of the Cauchy-weighted `nls` residuals (soft bound).
+        excess_cells, excess_rounds, excess_prior: `model=excess` only (`jaxcal.trajectory.gp_excess`, the
+            one-sided NLOS excess on every range): route cells along the longer side of each anchor's box, EM
+            rounds, pseudo ranges shrinking a cell's NLOS probability to the anchor's mean.
         block, max_ranges: `mean=anchor` only: the GP's covariance is block-diagonal over blocks
             of `block` consecutive ranges, on at most `max_ranges` ranges per anchor (evenly thinned
             in time); `block=0` (default): one dense GP on the stratified `n_train` subsample.
@@ -215,6 +218,9 @@ class GPParams(TrajectoryParams):
     n_basis: int = 20
     max_signal: float = 1.0
     basis_margin: float = 1.5
+    excess_cells: float = 16.0
+    excess_rounds: int = 8
+    excess_prior: float = 5.0
 
 
 def fit_hyper(x, y, mask, init: Hyper, nu: float = 1.5, jitter: float = 1e-6, max_steps: int = 200):
@@ -468,8 +474,13 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
         raise JaxcalError(f"parameter search: expected cuboid or gradient, got {p.search!r}")
     if p.mean not in ("constant", "anchor"):
         raise JaxcalError(f"parameter mean: expected constant or anchor, got {p.mean!r}")
-    if p.model not in ("subsample", "path", "space"):
-        raise JaxcalError(f"parameter model: expected subsample, path or space, got {p.model!r}")
+    if p.model not in ("subsample", "path", "space", "excess"):
+        raise JaxcalError(f"parameter model: expected subsample, path, space or excess, got {p.model!r}")
+    if p.model == "excess" and (p.mean != "anchor" or p.excess_cells <= 0 or p.excess_rounds < 1 or p.excess_prior < 0):
+        raise JaxcalError(
+            "parameter model=excess needs mean=anchor, excess_cells > 0, excess_rounds >= 1 and excess_prior >= 0, "
+            f"got {p.mean!r}, {p.excess_cells}, {p.excess_rounds}, {p.excess_prior}"
+        )
     if p.model == "space" and (p.mean != "anchor" or p.n_basis < 2 or p.basis_margin <= 1.0):
         raise JaxcalError(
             f"parameter model=space needs mean=anchor, n_basis >= 2 and basis_margin > 1, got {p.mean!r}, "
@@ -502,6 +513,7 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
     )
     if p.mean == "anchor":
         from jaxcal.trajectory.gp_anchor import calibrate_anchor_mean
+        from jaxcal.trajectory.gp_excess import calibrate_excess
         from jaxcal.trajectory.gp_path import calibrate_path
         from jaxcal.trajectory.gp_space import calibrate_space
 
@@ -509,6 +521,8 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
             out = calibrate_path(dataset, p, groups, info, planar)
         elif p.model == "space":
             out = calibrate_space(dataset, p, groups, info, planar)
+        elif p.model == "excess":
+            out = calibrate_excess(dataset, p, groups, info, planar)
         else:
             out = calibrate_anchor_mean(dataset, p, groups, info, n, planar)
         if progress is not None:
