@@ -67,6 +67,8 @@ that module. `mean="constant"` keeps the paper's GP and its searches. `model="pa
 the path's arc length, its marginal likelihood by a Kalman filter in O(n), no fuse or bound.
 `model="space"` (`jaxcal.trajectory.gp_space`, an option): the same over the horizontal position, f a
 Matern GP on a Hilbert-space basis (O(n m^2) once, then O(n m) per step), for routes driven in laps.
+`model="excess"` (`jaxcal.trajectory.gp_excess`, an option): every range, the residual a one-sided NLOS
+excess (a skewed LOS / NLOS mixture whose NLOS probability is a field over route cells), no fuse or bound.
 
 tinygp is not used: it would add a dependency for a dense GP with one kernel, and its Matern kernels
 are the half-integer ones only (no nu = 5/3).
@@ -174,7 +176,9 @@ class GPParams(TrajectoryParams):
             bounded by `nls`) or `path` (`jaxcal.trajectory.gp_path`: every range, r = |p - a| + b + f(s) + e
             with f a Matern `nu` (0.5 or 1.5) GP along the path's arc length s, by a Kalman filter; no fuse
             or bound, `nls` is the start and the fallback) or `space` (`jaxcal.trajectory.gp_space`: as `path`
-            with f a Matern `nu` GP over the horizontal position, on a Hilbert-space basis).
+            with f a Matern `nu` GP over the horizontal position, on a Hilbert-space basis) or `excess`
+            (`jaxcal.trajectory.gp_excess`: every range, a one-sided NLOS excess whose probability is tied to
+            route cells; no fuse or bound).
         n_basis, basis_margin: `model=space` only: sine basis functions per horizontal axis (n_basis^2 in
             all) on the positions' box grown by the factor basis_margin (> 1); max_signal: the signal
             variance at most this times the variance of the Cauchy-weighted `nls` residuals (soft bound).
@@ -214,7 +218,7 @@ class GPParams(TrajectoryParams):
     block: int = 0
     max_ranges: int = 4096
     bound_clusters: int = 0
-    model: str = "subsample"
+    model: str = "excess"
     n_basis: int = 20
     max_signal: float = 1.0
     basis_margin: float = 1.5
@@ -476,10 +480,10 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
         raise JaxcalError(f"parameter mean: expected constant or anchor, got {p.mean!r}")
     if p.model not in ("subsample", "path", "space", "excess"):
         raise JaxcalError(f"parameter model: expected subsample, path, space or excess, got {p.model!r}")
-    if p.model == "excess" and (p.mean != "anchor" or p.excess_cells <= 0 or p.excess_rounds < 1 or p.excess_prior < 0):
+    if p.model == "excess" and (p.excess_cells <= 0 or p.excess_rounds < 1 or p.excess_prior < 0):
         raise JaxcalError(
-            "parameter model=excess needs mean=anchor, excess_cells > 0, excess_rounds >= 1 and excess_prior >= 0, "
-            f"got {p.mean!r}, {p.excess_cells}, {p.excess_rounds}, {p.excess_prior}"
+            "parameter model=excess needs excess_cells > 0, excess_rounds >= 1 and excess_prior >= 0, "
+            f"got {p.excess_cells}, {p.excess_rounds}, {p.excess_prior}"
         )
     if p.model == "space" and (p.mean != "anchor" or p.n_basis < 2 or p.basis_margin <= 1.0):
         raise JaxcalError(
