@@ -60,7 +60,8 @@ GP above has no notion of where the anchor is: the cuboid search minimises the G
 when the anchor lies outside the region the tag covers, and the height is barely observable from
 near-planar trajectories (mean anchor errors of 4-8 m on the real recordings). `model="subsample"`
 (the default until 2026-11-27) models r = |p - a| + b + f(p) + e with the anchor a as a mean
-parameter, seeded and bounded by `nls`, with a heavy-tailed (Cauchy-weighted) white noise e, on a stratified subsample (or, with
+parameter, seeded and bounded by `nls`, with a heavy-tailed (Cauchy-weighted) white noise e, on a
+stratified subsample (or, with
 `block`, every range under a block-diagonal covariance over stretches of consecutive ranges); see
 that module. `mean="constant"` keeps the paper's GP and its searches. `model="path"`
 (`jaxcal.trajectory.gp_path`, an option): the GP as the noise model of every range, f a Matern GP along
