@@ -59,7 +59,7 @@ Parametric mean (`mean="anchor"`, the default; `jaxcal.trajectory.gp_anchor`): t
 GP above has no notion of where the anchor is: the cuboid search minimises the GP's extrapolation
 when the anchor lies outside the region the tag covers, and the height is barely observable from
 near-planar trajectories (mean anchor errors of 4-8 m on the real recordings). `model="subsample"`
-(the default until 2026-11-27) models r = |p - a| + b + f(p) + e with the anchor a as a mean
+(the default) models r = |p - a| + b + f(p) + e with the anchor a as a mean
 parameter, seeded and bounded by `nls`, with a heavy-tailed (Cauchy-weighted) white noise e, on a
 stratified subsample (or, with
 `block`, every range under a block-diagonal covariance over stretches of consecutive ranges); see
@@ -68,10 +68,10 @@ that module. `mean="constant"` keeps the paper's GP and its searches. `model="pa
 the path's arc length, its marginal likelihood by a Kalman filter in O(n), no fuse or bound.
 `model="space"` (`jaxcal.trajectory.gp_space`, an option): the same over the horizontal position, f a
 Matern GP on a Hilbert-space basis (O(n m^2) once, then O(n m) per step), for routes driven in laps.
-`model="excess"` (`jaxcal.trajectory.gp_excess`, the default): every range, the residual a one-sided NLOS
+`model="excess"` (`jaxcal.trajectory.gp_excess`, an option): every range, the residual a one-sided NLOS
 excess (a skewed LOS / NLOS mixture whose NLOS probability is a field over route cells), no fuse or bound:
 better than `nls` on simulated NLOS zones, under drift and on hanyang NLOS, within 1.2x on the shared
-recordings (docs/benchmarks/trajectory.md, thirteenth round).
+recordings (docs/benchmarks/trajectory.md, thirteenth round), but 2x the default's time on 1e5 ranges.
 
 tinygp is not used: it would add a dependency for a dense GP with one kernel, and its Matern kernels
 are the half-integer ones only (no nu = 5/3).
@@ -175,13 +175,13 @@ class GPParams(TrajectoryParams):
             covariance s^2 (J^T W J)^-1; -1: the covariance `nls` reports, over `cov_clusters` and
             `n_clusters` stretches). Either way the covariance is at least the one `nls` reports before the
             mirror check's profile (which then widens each method's about its own estimate).
-        model: `mean=anchor` only: `excess` (default, below) or `subsample` (the spatial GP on `n_train`
-            ranges, fused with and bounded by `nls`) or `path` (`jaxcal.trajectory.gp_path`: every range,
+        model: `mean=anchor` only: `subsample` (default: the spatial GP on `n_train` ranges, fused with and
+            bounded by `nls`) or `path` (`jaxcal.trajectory.gp_path`: every range,
             r = |p - a| + b + f(s) + e
             with f a Matern `nu` (0.5 or 1.5) GP along the path's arc length s, by a Kalman filter; no fuse
             or bound, `nls` is the start and the fallback) or `space` (`jaxcal.trajectory.gp_space`: as `path`
             with f a Matern `nu` GP over the horizontal position, on a Hilbert-space basis) or `excess`
-            (default; `jaxcal.trajectory.gp_excess`: every range, a one-sided NLOS excess whose probability is
+            (`jaxcal.trajectory.gp_excess`: every range, a one-sided NLOS excess whose probability is
             tied to route cells; no fuse or bound; fuse, bound, n_train, block only apply to `subsample`).
         n_basis, basis_margin: `model=space` only: sine basis functions per horizontal axis (n_basis^2 in
             all) on the positions' box grown by the factor basis_margin (> 1); max_signal: the signal
@@ -222,7 +222,7 @@ class GPParams(TrajectoryParams):
     block: int = 0
     max_ranges: int = 4096
     bound_clusters: int = 0
-    model: str = "excess"
+    model: str = "subsample"
     n_basis: int = 20
     max_signal: float = 1.0
     basis_margin: float = 1.5
@@ -484,10 +484,10 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
         raise JaxcalError(f"parameter mean: expected constant or anchor, got {p.mean!r}")
     if p.model not in ("subsample", "path", "space", "excess"):
         raise JaxcalError(f"parameter model: expected subsample, path, space or excess, got {p.model!r}")
-    if p.model == "excess" and (p.excess_cells <= 0 or p.excess_rounds < 1 or p.excess_prior < 0):
+    if p.model == "excess" and (p.mean != "anchor" or p.excess_cells <= 0 or p.excess_rounds < 1 or p.excess_prior < 0):
         raise JaxcalError(
-            "parameter model=excess needs excess_cells > 0, excess_rounds >= 1 and excess_prior >= 0, "
-            f"got {p.excess_cells}, {p.excess_rounds}, {p.excess_prior}"
+            "parameter model=excess needs mean=anchor, excess_cells > 0, excess_rounds >= 1 and excess_prior >= 0, "
+            f"got {p.mean!r}, {p.excess_cells}, {p.excess_rounds}, {p.excess_prior}"
         )
     if p.model == "space" and (p.mean != "anchor" or p.n_basis < 2 or p.basis_margin <= 1.0):
         raise JaxcalError(
