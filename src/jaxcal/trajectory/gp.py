@@ -58,15 +58,20 @@ standard deviation moves its apex by about as much.
 Parametric mean (`mean="anchor"`, the default; `jaxcal.trajectory.gp_anchor`): the constant-mean
 GP above has no notion of where the anchor is: the cuboid search minimises the GP's extrapolation
 when the anchor lies outside the region the tag covers, and the height is barely observable from
-near-planar trajectories (mean anchor errors of 4-8 m on the real recordings). The default GP
-models r = |p - a| + b + f(p) + e with the anchor a as a mean parameter, seeded and bounded by
-`nls`, with a heavy-tailed (Cauchy-weighted) white noise e, on a stratified subsample (or, with
+near-planar trajectories (mean anchor errors of 4-8 m on the real recordings). `model="subsample"`
+(the default) models r = |p - a| + b + f(p) + e with the anchor a as a mean
+parameter, seeded and bounded by `nls`, with a heavy-tailed (Cauchy-weighted) white noise e, on a
+stratified subsample (or, with
 `block`, every range under a block-diagonal covariance over stretches of consecutive ranges); see
 that module. `mean="constant"` keeps the paper's GP and its searches. `model="path"`
 (`jaxcal.trajectory.gp_path`, an option): the GP as the noise model of every range, f a Matern GP along
 the path's arc length, its marginal likelihood by a Kalman filter in O(n), no fuse or bound.
 `model="space"` (`jaxcal.trajectory.gp_space`, an option): the same over the horizontal position, f a
 Matern GP on a Hilbert-space basis (O(n m^2) once, then O(n m) per step), for routes driven in laps.
+`model="excess"` (`jaxcal.trajectory.gp_excess`, an option): every range, the residual a one-sided NLOS
+excess (a skewed LOS / NLOS mixture whose NLOS probability is a field over route cells), no fuse or bound:
+better than `nls` on simulated NLOS zones, under drift and on hanyang NLOS, within 1.2x on the shared
+recordings (docs/benchmarks/trajectory.md, thirteenth round), but 2x the default's time on 1e5 ranges.
 
 tinygp is not used: it would add a dependency for a dense GP with one kernel, and its Matern kernels
 are the half-integer ones only (no nu = 5/3).
@@ -171,13 +176,19 @@ class GPParams(TrajectoryParams):
             `n_clusters` stretches). Either way the covariance is at least the one `nls` reports before the
             mirror check's profile (which then widens each method's about its own estimate).
         model: `mean=anchor` only: `subsample` (default: the spatial GP on `n_train` ranges, fused with and
-            bounded by `nls`) or `path` (`jaxcal.trajectory.gp_path`: every range, r = |p - a| + b + f(s) + e
+            bounded by `nls`) or `path` (`jaxcal.trajectory.gp_path`: every range,
+            r = |p - a| + b + f(s) + e
             with f a Matern `nu` (0.5 or 1.5) GP along the path's arc length s, by a Kalman filter; no fuse
             or bound, `nls` is the start and the fallback) or `space` (`jaxcal.trajectory.gp_space`: as `path`
-            with f a Matern `nu` GP over the horizontal position, on a Hilbert-space basis).
+            with f a Matern `nu` GP over the horizontal position, on a Hilbert-space basis) or `excess`
+            (`jaxcal.trajectory.gp_excess`: every range, a one-sided NLOS excess whose probability is
+            tied to route cells; no fuse or bound; fuse, bound, n_train, block only apply to `subsample`).
         n_basis, basis_margin: `model=space` only: sine basis functions per horizontal axis (n_basis^2 in
             all) on the positions' box grown by the factor basis_margin (> 1); max_signal: the signal
             variance at most this times the variance of the Cauchy-weighted `nls` residuals (soft bound).
+        excess_cells, excess_rounds, excess_prior: `model=excess` only (`jaxcal.trajectory.gp_excess`, the
+            one-sided NLOS excess on every range): route cells along the longer side of each anchor's box, EM
+            rounds, pseudo ranges shrinking a cell's NLOS probability to the anchor's mean.
         block, max_ranges: `mean=anchor` only: the GP's covariance is block-diagonal over blocks
             of `block` consecutive ranges, on at most `max_ranges` ranges per anchor (evenly thinned
             in time); `block=0` (default): one dense GP on the stratified `n_train` subsample.
@@ -215,6 +226,9 @@ class GPParams(TrajectoryParams):
     n_basis: int = 20
     max_signal: float = 1.0
     basis_margin: float = 1.5
+    excess_cells: float = 16.0
+    excess_rounds: int = 8
+    excess_prior: float = 5.0
 
 
 def fit_hyper(x, y, mask, init: Hyper, nu: float = 1.5, jitter: float = 1e-6, max_steps: int = 200):
@@ -468,8 +482,13 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
         raise JaxcalError(f"parameter search: expected cuboid or gradient, got {p.search!r}")
     if p.mean not in ("constant", "anchor"):
         raise JaxcalError(f"parameter mean: expected constant or anchor, got {p.mean!r}")
-    if p.model not in ("subsample", "path", "space"):
-        raise JaxcalError(f"parameter model: expected subsample, path or space, got {p.model!r}")
+    if p.model not in ("subsample", "path", "space", "excess"):
+        raise JaxcalError(f"parameter model: expected subsample, path, space or excess, got {p.model!r}")
+    if p.model == "excess" and (p.mean != "anchor" or p.excess_cells <= 0 or p.excess_rounds < 1 or p.excess_prior < 0):
+        raise JaxcalError(
+            "parameter model=excess needs mean=anchor, excess_cells > 0, excess_rounds >= 1 and excess_prior >= 0, "
+            f"got {p.mean!r}, {p.excess_cells}, {p.excess_rounds}, {p.excess_prior}"
+        )
     if p.model == "space" and (p.mean != "anchor" or p.n_basis < 2 or p.basis_margin <= 1.0):
         raise JaxcalError(
             f"parameter model=space needs mean=anchor, n_basis >= 2 and basis_margin > 1, got {p.mean!r}, "
@@ -502,6 +521,7 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
     )
     if p.mean == "anchor":
         from jaxcal.trajectory.gp_anchor import calibrate_anchor_mean
+        from jaxcal.trajectory.gp_excess import calibrate_excess
         from jaxcal.trajectory.gp_path import calibrate_path
         from jaxcal.trajectory.gp_space import calibrate_space
 
@@ -509,6 +529,8 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
             out = calibrate_path(dataset, p, groups, info, planar)
         elif p.model == "space":
             out = calibrate_space(dataset, p, groups, info, planar)
+        elif p.model == "excess":
+            out = calibrate_excess(dataset, p, groups, info, planar)
         else:
             out = calibrate_anchor_mean(dataset, p, groups, info, n, planar)
         if progress is not None:

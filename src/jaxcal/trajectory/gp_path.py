@@ -179,11 +179,14 @@ def calibrate_path(dataset, p, groups, info, planar) -> Result:
     return calibrate_every_range(dataset, p, groups, info, planar, "path", fit)
 
 
-def calibrate_every_range(dataset, p, groups, info, planar, model: str, fit) -> Result:
+def calibrate_every_range(
+    dataset, p, groups, info, planar, model: str, fit, names=("length_m", "signal_var", "noise_var")
+) -> Result:
     """The driver of the GP models on every range (`model=path`, `model=space`): `nls` start and Cauchy
     weights, `fit(args, steps)` on (positions, ranges, mask, noise scales, start anchors, start biases) of
     every anchor returning (anchor (A, 3), covariance (A, 3, 3), bias (A,), Hyper, outcome codes (A,)),
-    then the fallback to `nls`, the height on a flat path and the `nls` covariance floor (module doc)."""
+    then the fallback to `nls`, the height on a flat path and the `nls` covariance floor (module doc). `names`: the
+    info keys of exp(Hyper's three fields) (`model=excess` reports other quantities in them)."""
     from jaxcal.trajectory import nls
     from jaxcal.trajectory.gp_anchor import cauchy_weights, cone_spread
     from jaxcal.trajectory.poses import AnchorRanges
@@ -233,9 +236,10 @@ def calibrate_every_range(dataset, p, groups, info, planar, model: str, fit) -> 
         nls_cone_spread_m=spread_nls.tolist(),
         planar=np.asarray(planar).tolist(),
         bias_m=bias.tolist(),
-        length_m=np.exp(np.asarray(hyp.log_length)).tolist(),
-        signal_var=np.exp(np.asarray(hyp.log_variance)).tolist(),
-        noise_var=np.exp(np.asarray(hyp.log_noise)).tolist(),
+        **{
+            k: np.exp(np.asarray(v)).tolist()
+            for k, v in zip(names, (hyp.log_length, hyp.log_variance, hyp.log_noise), strict=True)
+        },
     )
     kept = AnchorRanges(groups.position, groups.range, groups.mask)
     codes = np.maximum(np.asarray(codes), np.asarray(nls_codes))

@@ -1,0 +1,196 @@
+"""A one-sided NLOS excess tied to place, on every range (`gp` with `model=excess`).
+
+Model per anchor, every range, e_t = r_t - |p_t - a| - b:
+
+    e_t ~ (1 - eps) [(1 - pi(c_t)) LOS(e_t) + pi(c_t) NLOS(e_t)] + eps / D,
+
+LOS = N(0, s_L^2) convolved with an exponential excess of mean tau_L (an exponentially modified Gaussian, EMG),
+NLOS = EMG(mu, s_N, tau_N) with mu >= 0: a non-line-of-sight range is never shorter than the
+line-of-sight one (the excess delay through or around an obstacle is positive, `jaxcal.sim.channel`), so the
+anchor's cone plus b is the *lower* edge of the ranges, not their centre. eps / D is a gross-outlier floor
+(D: the span of the anchor's ranges). pi(c) is the NLOS probability of the route cell c the tag is in (square
+(x, y) cells, the box of the anchor's tag positions cut into `excess_cells` cells along its longer side): whether
+a link is NLOS is a function of where the platform is, so the ranges of one place share it.
+
+Why: a symmetric heavy-tailed loss (nls's Cauchy, the GP's Student-t weights) centres the cone on the
+*majority* of the ranges. Where most links of a stretch are NLOS it takes "cone + mu on the stretches in a zone"
+for "the anchor a bit further away", and the error follows the zones' layout. The one-sided mixture keeps
+mu as a separate, positive offset, and pi(c) tells per place which ranges carry it.
+
+Fit (generalised EM, one `jax.lax.scan` of `excess_rounds` rounds per anchor, anchors in `lax.map`): with pi
+fixed, the anchor, b and the class parameters minimise the negative log likelihood (Optimistix BFGS, seeded at
+`nls` with b at the lower tail of nls's residuals); then pi(c) = (sum_c gamma_t + k pi_bar) / (n_c + k), gamma_t
+the posterior NLOS probability of range t, shrunk to the anchor's mean pi_bar by k = `excess_prior` pseudo
+ranges (a cell with few ranges keeps the anchor's average). Each round does not lower the likelihood.
+On a flat path the height is held at `nls`'s. Covariance: the anchor block of the inverse Hessian of the
+negative log likelihood at the last pi (Laplace), widened to `nls`'s reported covariance by the shared driver
+(`gp_path.calibrate_every_range`, also the fallback and the report). Not a Gaussian process: the "field" is
+the cell-wise NLOS probability, the per-place structure the GP's f was meant to carry, in a one-sided form.
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Float
+
+from jaxcal import solver as S
+from jaxcal.data import Result
+from jaxcal.trajectory.gp_kernel import Hyper, _cone, laplace_covariance
+
+__all__ = ["emg_logpdf", "ExcessModel", "excess_nll", "fit_excess_all", "calibrate_excess"]
+
+# a weak Gaussian prior on the six class parameters about their start (sd in their unconstrained units): keeps
+# the mixture identifiable where one class is empty (pi -> 0: its shape has no data), so BFGS and the Hessian stay
+# finite; a few ranges overrule it
+_SHAPE_SD = 2.0
+# probabilities of a cell are kept inside [_PI_MIN, 1 - _PI_MIN]; eps (outliers) inside [_EPS_MIN, 0.5]
+_PI_MIN, _EPS_MIN = 1e-3, 1e-4
+
+
+def emg_logpdf(x, mu, sigma, tau):
+    """log density of the exponentially modified Gaussian N(mu, sigma^2) + Exp(mean tau) at x (any shape):
+    log(1/tau) + (mu - x) / tau + sigma^2 / (2 tau^2) + log Phi((x - mu - sigma^2 / tau) / sigma), with
+    `log_ndtr` for the tail (stable where tau << sigma and far from the mode)."""
+    lam = 1.0 / tau
+    z = (x - mu - sigma**2 * lam) / sigma
+    return jnp.log(lam) + lam * (mu - x) + 0.5 * (sigma * lam) ** 2 + jax.scipy.special.log_ndtr(z)
+
+
+class ExcessModel(eqx.Module):
+    """Anchor (3,) [m], range bias b [m] and the class parameters, unconstrained: s_L, tau_L, mu, s_N, tau_N each
+    mapped log-uniformly into its physical interval (`_LO`, `_HI`), and logit eps."""
+
+    anchor: Float[Array, ...]
+    bias: Float[Array, ...]
+    shape: Float[Array, " 6"]
+
+
+# physical ranges of the class parameters [m] (s_L, tau_L, mu, s_N, tau_N): every parameter is a log-uniform map of
+# its unconstrained value into them, so a class left without ranges cannot run off (an s_L of 1e8 m made the LOS
+# class an outlier sink, a b 0.6 m low made every range NLOS)
+_LO = np.array([0.005, 0.002, 0.01, 0.01, 0.01])
+_HI = np.array([0.5, 0.5, 3.0, 1.0, 5.0])
+
+
+def _to_bounded(u, lo, hi):
+    return jnp.exp(jnp.log(lo) + (jnp.log(hi) - jnp.log(lo)) * jax.nn.sigmoid(u))
+
+
+def _from_bounded(v, lo, hi):
+    f = jnp.clip((jnp.log(v) - jnp.log(lo)) / (jnp.log(hi) - jnp.log(lo)), 0.02, 0.98)
+    return jnp.log(f) - jnp.log1p(-f)
+
+
+def _classes(th: ExcessModel):
+    """(s_L, tau_L, mu, s_N, tau_N, eps) from the unconstrained `th.shape`."""
+    v = _to_bounded(th.shape[:5], _LO, _HI)
+    return v[0], v[1], v[2], v[3], v[4], _EPS_MIN + (0.5 - _EPS_MIN) * jax.nn.sigmoid(th.shape[5])
+
+
+def _log_parts(th: ExcessModel, x, r, log_d):
+    """(log LOS, log NLOS, log outlier) densities of every range (n,) under `th`."""
+    e = r - _cone(x, th.anchor) - th.bias
+    s_l, t_l, mu, s_n, t_n, eps = _classes(th)
+    los = jnp.log1p(-eps) + emg_logpdf(e, 0.0, s_l, t_l)
+    nlos = jnp.log1p(-eps) + emg_logpdf(e, mu, s_n, t_n)
+    return los, nlos, jnp.log(eps) - log_d
+
+
+def excess_nll(th: ExcessModel, x, r, mask, pi, log_d) -> Float[Array, ""]:
+    """-log p(r | th, pi) of the one-sided mixture (module doc) over the valid ranges.
+
+    Args:
+        th: parameters. x: (n, 3) tag positions [m]. r: (n,) ranges [m]. mask: (n,) valid.
+        pi: (n,) NLOS prior of each range (its cell's). log_d: log of the outlier span D [m].
+    """
+    los, nlos, out = _log_parts(th, x, r, log_d)
+    mix = jnp.logaddexp(jnp.log1p(-pi) + los, jnp.log(pi) + nlos)
+    return -jnp.sum(jnp.where(mask, jnp.logaddexp(mix, out), 0.0))
+
+
+@eqx.filter_jit
+def fit_excess_all(x, r, mask, cells, a0, b0, free_z, n_cells: int, rounds: int, prior: float, max_steps: int):
+    """Every anchor (`lax.map`): x (A, n, 3), r / mask / cells (A, n) (cells: labels 0..n_cells-1, padding
+    n_cells), seeds a0 (A, 3), b0 (A,), free_z (A,) whether the height is fitted.
+
+    Returns:
+        (anchor (A, 3), covariance (A, 3, 3), bias (A,), Hyper (log s_L, log mu, log pi_bar: for the report),
+        outcome codes (A,)).
+    """
+
+    def one(x, r, m, c, a0, b0, fz):
+        w = m.astype(x.dtype)
+        nv = jnp.maximum(jnp.sum(w), 1.0)
+        origin = jnp.sum(x * w[:, None], axis=0) / nv
+        xc = jnp.where(m[:, None], x - origin, 0.0)
+        z0 = a0[2] - origin[2]
+        e0 = jnp.where(m, r - _cone(xc, a0 - origin) - b0, jnp.nan)
+        q10, q50 = jnp.nanpercentile(e0, jnp.array([10.0, 50.0]))
+        mad = jnp.nanmedian(jnp.abs(e0 - q50))
+        sd = jnp.maximum(1.4826 * mad, 0.02)
+        lo_r = jnp.min(jnp.where(m, r, jnp.inf))
+        hi_r = jnp.max(jnp.where(m, r, -jnp.inf))
+        log_d = jnp.log(jnp.maximum(hi_r - lo_r, 1.0) + 10.0 * sd)
+        # b at the lower edge of nls's residuals (the LOS level), mu the gap to their median
+        mu0 = jnp.maximum(q50 - q10, 0.05)
+        start = jnp.stack([0.5 * sd, 0.25 * sd, mu0, sd, sd])
+        shape0 = jnp.concatenate([_from_bounded(start, _LO, _HI), jnp.array([-3.0], x.dtype)])
+        init = ExcessModel(a0 - origin, b0 + q10, shape0)
+
+        def held(th):  # a flat path does not observe the height: held at the start's
+            return eqx.tree_at(lambda t: t.anchor, th, th.anchor.at[2].set(jnp.where(fz, th.anchor[2], z0)))
+
+        def objective(t, pi):
+            prior_shape = 0.5 * jnp.sum(((t.shape - shape0) / _SHAPE_SD) ** 2)
+            return excess_nll(held(t), xc, r, m, pi, log_d) + prior_shape
+
+        def round_(carry, _):
+            th, pi = carry
+
+            def loss(t, _):
+                return objective(t, pi) / nv
+
+            sol = optx.minimise(loss, optx.BFGS(rtol=1e-7, atol=1e-7), th, max_steps=max_steps, throw=False)
+            ok = jnp.isfinite(loss(sol.value, None))
+            th = jax.tree.map(lambda a, b: jnp.where(ok, a, b), held(sol.value), th)
+            los, nlos, _ = _log_parts(th, xc, r, log_d)
+            gamma = jax.nn.sigmoid(jnp.log(pi) + nlos - jnp.log1p(-pi) - los)
+            gamma = jnp.where(m, gamma, 0.0)
+            pi_bar = jnp.sum(gamma) / nv
+            num = jax.ops.segment_sum(gamma, c, num_segments=n_cells + 1)
+            cnt = jax.ops.segment_sum(w, c, num_segments=n_cells + 1)
+            pi_c = jnp.clip((num + prior * pi_bar) / (cnt + prior), _PI_MIN, 1.0 - _PI_MIN)
+            return (th, pi_c[c]), S.outcome(sol)
+
+        (th, pi), codes = jax.lax.scan(round_, (init, jnp.full(r.shape, 0.5, x.dtype)), None, length=rounds)
+
+        cov = laplace_covariance(lambda t: objective(t, pi), th)
+        keep = jnp.stack([1.0, 1.0, jnp.where(fz, 1.0, 0.0)])
+        s_l, _, mu, _, _, _ = _classes(th)
+        report = Hyper(jnp.log(s_l), jnp.log(mu), jnp.log(jnp.sum(jnp.where(m, pi, 0.0)) / nv))
+        return th.anchor + origin, cov * keep[:, None] * keep[None, :], th.bias, report, codes[-1]
+
+    return jax.lax.map(lambda a: one(*a), (x, r, mask, cells, a0, b0, free_z))
+
+
+def calibrate_excess(dataset, p, groups, info, planar) -> Result:
+    """`gp` with `model=excess` (module doc): `nls` start, the one-sided mixture on every range."""
+    from jaxcal.trajectory import nls
+    from jaxcal.trajectory.gp_path import calibrate_every_range
+
+    free_z = jnp.asarray(~np.asarray(planar, dtype=bool))
+    labels, n_cells = nls.route_cells(groups, SimpleNamespace(cov_cell_m=0.0, cov_cells=p.excess_cells))
+    cells = jnp.asarray(labels)
+
+    def fit(args, steps):
+        pos, rng_m, mask, _, a0, b0 = args
+        return fit_excess_all(pos, rng_m, mask, cells, a0, b0, free_z, n_cells, p.excess_rounds, p.excess_prior, steps)
+
+    names = ("los_sd_m", "nlos_excess_m", "nlos_fraction")
+    return calibrate_every_range(dataset, p, groups, info, planar, "excess", fit, names)
