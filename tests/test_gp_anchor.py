@@ -71,6 +71,9 @@ def test_cauchy_weights_formula():
     np.testing.assert_allclose(gp_anchor.cauchy_weights(e), 1 / (1 + (e / c) ** 2))
     # the scale never drops below its floor
     np.testing.assert_allclose(gp_anchor.cauchy_weights(np.zeros(3) + 1e-9), 1.0, atol=1e-12)
+    # center=True (the drift cells'): the scale from the MAD about the median
+    c = 2.385 * 1.4826 * np.median(np.abs(e - np.median(e)))
+    np.testing.assert_allclose(gp_anchor.cauchy_weights(e, center=True), 1 / (1 + (e / c) ** 2))
 
 
 @pytest.mark.parametrize("seed", SEEDS)

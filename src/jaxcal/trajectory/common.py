@@ -238,6 +238,18 @@ def report_fits(method: str, codes, groups, p, hint: str):
     return rep
 
 
+def cauchy_weights(res: np.ndarray, min_scale_m: float = 0.05, center: bool = False) -> np.ndarray:
+    """Cauchy IRLS weights 1 / (1 + (e / c)^2) of residuals e [m], c = max(2.385 x 1.4826 x median |e|,
+    min_scale_m) (the `nls` scale); `center`: median |e - median e| instead (the MAD, for residuals with an offset
+    left in them: `jaxcal.trajectory.drift`'s cells). Returns an array shaped like `res`."""
+    res = np.asarray(res, dtype=float)
+    if res.size == 0:
+        return np.ones_like(res)
+    dev = res - np.median(res) if center else res
+    c = max(2.385 * 1.4826 * float(np.median(np.abs(dev))), min_scale_m)
+    return 1.0 / (1.0 + (res / c) ** 2)
+
+
 def finish(dataset, method, p, groups, est, cov, info, solver=None, pose_cov_extra=None) -> Result:
     """Build the Result: NaN rows for anchors with fewer than `p.min_ranges` ranges or failed fits; a NaN
     height (the rest kept, one warning line) for anchors whose height the path cannot observe

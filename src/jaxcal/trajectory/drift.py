@@ -65,6 +65,7 @@ import numpy as np
 from scipy.optimize import brentq, minimize
 
 from jaxcal.blas_threads import one_blas_thread
+from jaxcal.trajectory.common import cauchy_weights
 from jaxcal.trajectory.pose_error import anchor_times, pose_error_covariances
 
 __all__ = [
@@ -124,11 +125,6 @@ class DriftEstimate(NamedTuple):
     bounded_corr_s: float = float("nan")
 
 
-def _cauchy(res: np.ndarray, min_scale_m: float) -> np.ndarray:
-    scale = max(2.385 * 1.4826 * float(np.median(np.abs(res - np.median(res)))), min_scale_m)
-    return 1.0 / (1.0 + (res / scale) ** 2)
-
-
 def cell_statistics(anchors, t0: float, window_s: float, min_scale_m: float = 0.05, min_ranges: int = 3):
     """Per cell (one anchor's ranges in one `window_s` interval from t0) the whitened statistics of the module
     docstring.
@@ -149,7 +145,7 @@ def cell_statistics(anchors, t0: float, window_s: float, min_scale_m: float = 0.
         dist = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
         u = d / dist[:, None]
         res = dist + bias - np.asarray(rng, float)
-        w = _cauchy(res, min_scale_m)
+        w = cauchy_weights(res, min_scale_m, center=True)
         jac = np.column_stack([-u, np.ones(u.shape[0])])
         tau = np.asarray(time, float) - t0
         label = np.floor(tau / window_s).astype(np.int64)

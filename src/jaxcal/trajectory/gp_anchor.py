@@ -49,7 +49,7 @@ from jaxtyping import Array, Bool, Float
 from jaxcal import solver as S
 from jaxcal.data import Result
 from jaxcal.params import with_overrides
-from jaxcal.trajectory.common import finish, report_fits, widen_covariance
+from jaxcal.trajectory.common import cauchy_weights, finish, report_fits, widen_covariance
 from jaxcal.trajectory.gp_kernel import (
     Hyper,
     _cone,
@@ -224,16 +224,6 @@ def cone_spread(pos, rng_m, mask, anchor) -> np.ndarray:
             e = rng_m[a, mask[a]] - np.linalg.norm(pos[a, mask[a]] - anchor[a], axis=1)
             out[a] = np.median(np.abs(e - np.median(e)))
     return out
-
-
-def cauchy_weights(res: np.ndarray, min_scale_m: float = 0.05) -> np.ndarray:
-    """Cauchy IRLS weights 1 / (1 + (e / c)^2) of residuals e [m], c = max(2.385 x 1.4826 x
-    median |e|, min_scale_m) (the `nls` scale). Returns an array shaped like `res`."""
-    res = np.asarray(res, dtype=float)
-    if res.size == 0:
-        return np.ones_like(res)
-    c = max(2.385 * 1.4826 * float(np.median(np.abs(res))), min_scale_m)
-    return 1.0 / (1.0 + (res / c) ** 2)
 
 
 def bound_step(a0: np.ndarray, cov0: np.ndarray, a: np.ndarray, max_sigma: float) -> np.ndarray:
