@@ -32,4 +32,22 @@ part "${T_BATCH:-120}" large_batch.jsonl "$PY" benchmarks/large_networks.py --no
 # 3. trajectory GP against nls, 10 anchors from ~1e5 ranges (issue #19 item 3), default gp then model=space
 part "${T_GP:-0}" gp_speed.jsonl "$PY" benchmarks/gp_speed.py --rate 150 --n 300
 part "${T_GP_SPACE:-0}" gp_speed_space.jsonl "$PY" benchmarks/gp_speed.py --rate 150 --n 300 --model space
+part "${T_GP_EXCESS:-0}" gp_speed_excess.jsonl "$PY" benchmarks/gp_speed.py --rate 150 --n 300 --model excess
+# 4. tuning (issue #17's user): the whole `jaxcal tune` process on torgau (the README's command), on the GPU with an
+# empty compile cache, then the same machine's CPU cores (JAX_PLATFORMS=cpu, its own empty cache), then the GPU again
+# with its cache warm; wall seconds and the summary line of each
+tune() {  # tune BOUND_S NAME PLATFORM CACHE
+  local bound="$1" name="$2"
+  if [ "$bound" = 0 ]; then echo "gpu_suite: skipped $name"; return; fi
+  local t0; t0=$(date +%s.%N)
+  JAX_PLATFORMS="$3" JAXCAL_CACHE_DIR="$4" timeout "$bound" "$PY" -m jaxcal.cli tune data/torgau.h5 --method pgp \
+    --config conf1 -o "$OUT/$name.json" > "$OUT/$name.log" 2>&1
+  local rc=$?
+  echo "{\"part\": \"$name\", \"platform\": \"$3\", \"rc\": $rc, \"wall_s\": $("$PY" -c "import time; print(round(time.time() - $t0, 1))")}" \
+    | tee -a "$OUT/tune.jsonl"
+  tail -n 3 "$OUT/$name.log"
+}
+tune "${T_TUNE_GPU:-0}" tune-gpu-cold cuda /tmp/jaxcal-cache-gpu
+tune "${T_TUNE_CPU:-0}" tune-cpu-cold cpu /tmp/jaxcal-cache-cpu
+tune "${T_TUNE_GPU_WARM:-0}" tune-gpu-warm cuda /tmp/jaxcal-cache-gpu
 echo "gpu_suite: done"
