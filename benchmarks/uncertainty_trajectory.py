@@ -2,7 +2,8 @@
 
 Datasets: the real recordings in ../shared/datasets with anchor truth (hymn-torgau, hanyang-outdoor LOS and
 NLOS Trajectory_A Case_1, cuhksz-planar) and simulated campaigns (`jaxcal.sim.trajectory`, scenario
-`small` over `--sim-seeds`; `--family alternate` (default): odometry drift 0.02 m/sqrt(s) on odd seeds, none on
+`small` (`--scenario campus`: the full-scale campus, 10 anchors over 600 x 450 m) over `--sim-seeds`;
+`--family alternate` (default): odometry drift 0.02 m/sqrt(s) on odd seeds, none on
 even ones; `drift` / `clean`: drift on every seed / on none). `--stated-drift` tells the methods the drift
 (`pose_drift`, `jaxcal.trajectory.pose_error`) where there is one; otherwise nls estimates it from the ranges
 (`jaxcal.trajectory.drift`, with `--drift-estimate on`; each line's `pose_drift_estimate` and
@@ -18,7 +19,9 @@ over anchors, 3-D over the finite coordinates and horizontal).
 
 Usage:
     python benchmarks/uncertainty_trajectory.py [--methods nls,ls] [--sim-seeds 0-19 | 1,3,5] [--no-real]
-        [--family alternate|drift|clean] [--stated-drift] [--drift-estimate on|off] [--drift-model auto|drift|bounded]
+        [--scenario small|campus] [--family alternate|drift|clean] [--stated-drift] [--drift-estimate on|off]
+        [--drift-model auto|drift|bounded]
+        [--nls-set K=V ...]
 """
 
 from __future__ import annotations
@@ -134,9 +137,11 @@ def main(argv=None) -> int:
     ap.add_argument("--sim-seeds", default="0-19")
     ap.add_argument("--no-real", action="store_true")
     ap.add_argument("--family", choices=("alternate", "drift", "clean"), default="alternate")
+    ap.add_argument("--scenario", choices=("small", "campus"), default="small")
     ap.add_argument("--stated-drift", action="store_true", help="pass the campaign's drift as pose_drift")
     ap.add_argument("--drift-estimate", choices=("on", "off", "default"), default="default", help="nls estimate_drift")
     ap.add_argument("--drift-model", choices=("auto", "drift", "bounded"), default=None, help="nls drift_model")
+    ap.add_argument("--nls-set", action="append", default=[], metavar="K=V", help="an NLSParams value for nls")
     args = ap.parse_args(argv)
     logging.getLogger("jaxcal").setLevel(logging.ERROR)
     from jaxcal.methods import calibrate
@@ -146,6 +151,9 @@ def main(argv=None) -> int:
     off = {} if args.drift_estimate == "default" else {"estimate_drift": args.drift_estimate == "on"}
     if args.drift_model is not None:
         off["drift_model"] = args.drift_model
+    for kv in args.nls_set:
+        k, v = kv.split("=", 1)
+        off[k] = json.loads(v) if v[:1] in "-0123456789.tf[" else v
 
     def run(ds, m, params):
         res = calibrate(ds, m, params={**off, **(params or {})} if m == "nls" else params)
@@ -163,10 +171,10 @@ def main(argv=None) -> int:
     sims = {m: [] for m in methods}
     for seed in seeds:
         drift = {"drift": 0.02, "clean": 0.0}.get(args.family, 0.02 if seed % 2 else 0.0)
-        ds = simulate("small", seed=seed, drift=drift)
+        ds = simulate(args.scenario, seed=seed, drift=drift)
         stated = {"pose_drift": drift} if args.stated_drift and drift > 0 else None
         for m in methods:
-            ln = dict(run(ds, m, stated), dataset=f"sim-small-{seed}")
+            ln = dict(run(ds, m, stated), dataset=f"sim-{args.scenario}-{seed}")
             sims[m].append(ln)
             print(json.dumps(ln), flush=True)
     for m in methods:
