@@ -5,8 +5,8 @@ NLOS Trajectory_A Case_1, cuhksz-planar) and simulated campaigns (`jaxcal.sim.tr
 `small` over `--sim-seeds`; `--family alternate` (default): odometry drift 0.02 m/sqrt(s) on odd seeds, none on
 even ones; `drift` / `clean`: drift on every seed / on none). `--stated-drift` tells the methods the drift
 (`pose_drift`, `jaxcal.trajectory.pose_error`) where there is one; otherwise nls estimates it from the ranges
-(`jaxcal.trajectory.drift`, with `--drift-estimate on`; each line's `pose_drift_estimate` and
-`pose_drift_used`).
+(`jaxcal.trajectory.drift`, `--drift-estimate on|off`, for nls and gp alike; each line's `pose_drift_estimate`,
+`pose_drift_used` and `pose_error_model`).
 
 Per anchor with a finite estimate: the error e (3-D; split into horizontal and vertical), the NEES
 e^T C^-1 e over the finite coordinates (an unobservable coordinate reported as NaN is left out, and
@@ -135,8 +135,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-real", action="store_true")
     ap.add_argument("--family", choices=("alternate", "drift", "clean"), default="alternate")
     ap.add_argument("--stated-drift", action="store_true", help="pass the campaign's drift as pose_drift")
-    ap.add_argument("--drift-estimate", choices=("on", "off", "default"), default="default", help="nls estimate_drift")
-    ap.add_argument("--drift-model", choices=("auto", "drift", "bounded"), default=None, help="nls drift_model")
+    ap.add_argument("--drift-estimate", choices=("on", "off", "default"), default="default", help="nls, gp")
+    ap.add_argument("--drift-model", choices=("auto", "drift", "bounded"), default=None, help="drift_model (nls, gp)")
     args = ap.parse_args(argv)
     logging.getLogger("jaxcal").setLevel(logging.ERROR)
     from jaxcal.methods import calibrate
@@ -148,10 +148,11 @@ def main(argv=None) -> int:
         off["drift_model"] = args.drift_model
 
     def run(ds, m, params):
-        res = calibrate(ds, m, params={**off, **(params or {})} if m == "nls" else params)
+        res = calibrate(ds, m, params={**off, **(params or {})} if m in ("nls", "gp") else params)
         ln = line(ds.name, m, anchor_figures(res, ds.anchor_truth))
         ln["pose_drift_used"] = res.params.get("pose_drift")
         ln["pose_drift_estimate"] = res.params.get("info_pose_drift_estimate")
+        ln["pose_error_model"] = res.params.get("info_pose_error_model")
         return ln
 
     if not args.no_real:
