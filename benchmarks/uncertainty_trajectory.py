@@ -6,8 +6,8 @@ NLOS Trajectory_A Case_1, cuhksz-planar) and simulated campaigns (`jaxcal.sim.tr
 `--family alternate` (default): odometry drift 0.02 m/sqrt(s) on odd seeds, none on
 even ones; `drift` / `clean`: drift on every seed / on none). `--stated-drift` tells the methods the drift
 (`pose_drift`, `jaxcal.trajectory.pose_error`) where there is one; otherwise nls estimates it from the ranges
-(`jaxcal.trajectory.drift`, with `--drift-estimate on`; each line's `pose_drift_estimate` and
-`pose_drift_used`).
+(`jaxcal.trajectory.drift`, `--drift-estimate on|off`, for nls and gp alike; each line's `pose_drift_estimate`,
+`pose_drift_used` and `pose_error_model`).
 
 Per anchor with a finite estimate: the error e (3-D; split into horizontal and vertical), the NEES
 e^T C^-1 e over the finite coordinates (an unobservable coordinate reported as NaN is left out, and
@@ -139,8 +139,8 @@ def main(argv=None) -> int:
     ap.add_argument("--family", choices=("alternate", "drift", "clean"), default="alternate")
     ap.add_argument("--scenario", choices=("small", "campus"), default="small")
     ap.add_argument("--stated-drift", action="store_true", help="pass the campaign's drift as pose_drift")
-    ap.add_argument("--drift-estimate", choices=("on", "off", "default"), default="default", help="nls estimate_drift")
-    ap.add_argument("--drift-model", choices=("auto", "drift", "bounded"), default=None, help="nls drift_model")
+    ap.add_argument("--drift-estimate", choices=("on", "off", "default"), default="default", help="nls, gp")
+    ap.add_argument("--drift-model", choices=("auto", "drift", "bounded"), default=None, help="drift_model (nls, gp)")
     ap.add_argument("--nls-set", action="append", default=[], metavar="K=V", help="an NLSParams value for nls")
     args = ap.parse_args(argv)
     logging.getLogger("jaxcal").setLevel(logging.ERROR)
@@ -151,15 +151,18 @@ def main(argv=None) -> int:
     off = {} if args.drift_estimate == "default" else {"estimate_drift": args.drift_estimate == "on"}
     if args.drift_model is not None:
         off["drift_model"] = args.drift_model
+    nls_only = {}
     for kv in args.nls_set:
         k, v = kv.split("=", 1)
-        off[k] = json.loads(v) if v[:1] in "-0123456789.tf[" else v
+        nls_only[k] = json.loads(v) if v[:1] in "-0123456789.tf[" else v
 
     def run(ds, m, params):
-        res = calibrate(ds, m, params={**off, **(params or {})} if m == "nls" else params)
+        extra = {**off, **(nls_only if m == "nls" else {})}
+        res = calibrate(ds, m, params={**extra, **(params or {})} if m in ("nls", "gp") else params)
         ln = line(ds.name, m, anchor_figures(res, ds.anchor_truth))
         ln["pose_drift_used"] = res.params.get("pose_drift")
         ln["pose_drift_estimate"] = res.params.get("info_pose_drift_estimate")
+        ln["pose_error_model"] = res.params.get("info_pose_error_model")
         return ln
 
     if not args.no_real:

@@ -157,3 +157,56 @@ def test_mean_model_fit_without_correlated_error_stays_inside_the_bounds(rng):
     assert float(th.hyper.log_length) < np.log(radius) + 1.0
     est = np.asarray(th.anchor) + x.mean(axis=0)
     assert np.linalg.norm(est - anchor) < 0.5
+
+
+def test_gp_adds_the_shared_pose_error_nls_estimates_and_keeps_positions(rng, caplog, monkeypatch):
+    """gp (default model) on poses with a random-walk drift (the data of the test above, to share its compiled
+    fit): with `estimate_drift` (the default) the estimate is made once, at nls's answer with nls's parameters (as
+    nls makes it), its covariance is the one without plus a PSD term that grows an anchor, one warning line says
+    so, and the positions are those without."""
+    import logging
+
+    import equinox as eqx
+
+    from jaxcal.trajectory import drift, nls
+
+    ds = drone(noise=0.05)
+    gen = np.random.default_rng(rng)
+    walk = np.cumsum(gen.normal(0.0, 0.05 * np.sqrt(0.05), (ds.pose_time.size, 2)), axis=0)
+    pose = np.asarray(ds.pose_position).copy()
+    pose[:, :2] += walk - walk[0]
+    ds = eqx.tree_at(lambda d: d.pose_position, ds, pose)
+    base = {"n_train": 60, "mirror_profile": 0}
+    off = gp.calibrate(ds, {**base, "estimate_drift": False})
+    assert "info_pose_error_model" not in off.params
+    calls = []
+
+    def spy(dataset, groups, est, bias, cov, p, method):
+        calls.append((np.array(est), np.array(bias), p))
+        return estimate(dataset, groups, est, bias, cov, p, method)
+
+    estimate = drift.drift_for_covariance
+    monkeypatch.setattr(drift, "drift_for_covariance", spy)
+    with caplog.at_level(logging.WARNING, logger="jaxcal"):
+        on = gp.calibrate(ds, base)
+    lines = [r.getMessage() for r in caplog.records if "pose_drift not stated" in r.getMessage()]
+    ref = nls.calibrate(ds, {"mirror_profile": 0, "estimate_drift": False})
+    assert len(calls) == 1  # once
+    est, bias, p = calls[0]
+    np.testing.assert_allclose(est, ref.position, atol=1e-9)
+    np.testing.assert_allclose(bias, ref.params["info_bias_m"], atol=1e-9)
+    assert p == nls.NLSParams()  # nls's own: estimate_drift, drift_model, cov_clusters, min_scale_m
+    np.testing.assert_array_equal(on.position, off.position)
+    assert on.params["info_pose_error_propagated"]
+    grown = []
+    for a in range(2):
+        c = on.covariance[a]
+        np.testing.assert_allclose(c, c.T)
+        assert np.linalg.eigvalsh(c).min() >= 0
+        extra = c - off.covariance[a]
+        assert np.linalg.eigvalsh(0.5 * (extra + extra.T)).min() > -1e-12
+        grown.append(np.trace(extra[:2, :2]))
+    assert max(grown) > 0
+    assert len(lines) == (on.params["info_pose_error_widened"] > 1.005) and all(s.startswith("gp:") for s in lines)
+    with pytest.raises(gp.JaxcalError, match="parameter drift_model: expected one of auto, drift, bounded"):
+        gp.calibrate(ds, {"drift_model": "odometry"})

@@ -129,10 +129,10 @@ def run(args) -> int:
     partial = f" ({pu['partial']} with a coordinate not fixed: {named})" if pu["partial"] else ""
     quality = f", predicted RMS uncertainty {pred:.3g} m" if np.isfinite(pred) else ", no covariance"
     drift_used = bool(result.params.get("info_pose_error_propagated", False))
-    estimated = "info_pose_error_model" in result.params  # nls looked for a shared pose error in the ranges
+    estimated = "info_pose_error_model" in result.params  # nls or gp looked for a shared pose error in the ranges
     if not mesh and np.isfinite(pred) and not _pose_error_stated(params) and not drift_used:
         seen = "the ranges show no shared pose error; otherwise " if estimated else ""
-        or_estimate = ", or --set estimate_drift=true" if args.method == "nls" and not estimated else ""
+        or_estimate = ", or --set estimate_drift=true" if args.method in ("nls", "gp") and not estimated else ""
         quality += (
             f" ({seen}poses taken as exact: state their error with --set pose_drift=... / pose_sd_m=...{or_estimate})"
         )
@@ -150,7 +150,7 @@ def run(args) -> int:
 
 
 def _estimated_pose_error(params: dict) -> str:
-    """What `nls` propagated of the pose error it estimated (`jaxcal.trajectory.drift`), in words."""
+    """What `nls` or `gp` propagated of the pose error estimated (`jaxcal.trajectory.drift`), in words."""
     if params.get("info_pose_error_model") == "bounded":
         sd, corr = (params.get(f"info_pose_bounded_{k}", float("nan")) for k in ("sd_m", "corr_s"))
         return f"a bounded pose error of sd {sd:.3g} m over {corr:.0f} s"

@@ -258,8 +258,8 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None, pose_cov_ext
     fits clearly better). A stated pose error (`pose_sd_m`, `pose_drift`) is added to every covariance
     first (`jaxcal.trajectory.pose_error`). `solver` (a `jaxcal.solver.SolverReport`) adds `solver_status` and
     `solver_failed` to the params. `pose_cov_extra` ((A, 3, 3) or None): a further pose error covariance, added
-    with the stated one (`nls`'s estimated shared error, `jaxcal.trajectory.drift`: the part its jackknife cannot
-    see)."""
+    with the stated one (the shared error `nls` estimates, `jaxcal.trajectory.drift`: the part its jackknife cannot
+    see; `gp` adds the same)."""
     from jaxcal import __version__
 
     est = np.array(est, dtype=float)

@@ -52,7 +52,8 @@ stretches cannot see (`pose_error`'s `seen_by`): that covariance is already wide
 holds an error that changes between the stretches (on hanyang LOS, 20 s against stretches of ~58 s: all of it),
 so adding the whole propagation counted it twice (twelfth round: NEES/dof 1.14 -> 0.19 there). On by default in nls
 (`estimate_drift`) since the thirteenth round; on the simulated drift family the worst campaign stays above 3
-(docs/benchmarks/uncertainty.md, thirteenth round).
+(docs/benchmarks/uncertainty.md, thirteenth round). `gp` (every model that starts from nls) adds the same term
+since the fourteenth round (`drift_for_method`): the estimate at nls's fit, made once, as nls would make it.
 """
 
 from __future__ import annotations
@@ -76,6 +77,7 @@ __all__ = [
     "reml_loglik",
     "estimate_drift",
     "drift_for_covariance",
+    "drift_for_method",
 ]
 
 SCALES = np.array([1e-4, 1e-2, 1e-2])  # typical q^2 [m^2/s], tau^2 and nu^2 [m^2]: the optimiser's units
@@ -397,3 +399,19 @@ def drift_for_covariance(dataset, groups, est, bias, cov, p, method: str):
         )
     info["pose_error_propagated"] = True
     return p, info, extra
+
+
+def drift_for_method(dataset, groups, a0, b0, cov, p, p_nls, method: str):
+    """`drift_for_covariance` for a method that starts from nls's fit (`gp`): the same estimate nls makes on that
+    data (at nls's answer `a0` (A, 3), `b0` (A,), with nls's `p_nls`: its Cauchy scale, `min_ranges` and jackknife
+    stretches `cov_clusters`), under the method's own `p`'s stated pose error (`pose_sd_m`, `pose_drift`: a
+    statement wins) and `estimate_drift` / `drift_model`. The method's covariance `cov` (A, 3, 3) is at least nls's
+    jackknifed one (gp floors it there), so the part that jackknife holds is left out as for nls; `cov` only sizes
+    the line's widening. Returns (info entries, extra (A, 3, 3) covariance or None), as `drift_for_covariance`."""
+    q = eqx.tree_at(
+        lambda r: (r.pose_sd_m, r.pose_drift, r.estimate_drift, r.drift_model),
+        p_nls,
+        (p.pose_sd_m, p.pose_drift, p.estimate_drift, p.drift_model),
+    )
+    _, info, extra = drift_for_covariance(dataset, groups, a0, b0, cov, q, method)
+    return info, extra

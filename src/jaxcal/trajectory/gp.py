@@ -97,6 +97,7 @@ from jaxcal.errors import JaxcalError
 from jaxcal.params import with_overrides
 from jaxcal.precision import in_float64
 from jaxcal.trajectory.common import TrajectoryParams, finish, is_planar, report_fits
+from jaxcal.trajectory.drift import MODELS
 from jaxcal.trajectory.gp_anchor import MeanModel, cone_spread, fit_mean_model, mean_model_nlml
 from jaxcal.trajectory.gp_kernel import (
     Hyper,
@@ -193,11 +194,16 @@ class GPParams(TrajectoryParams):
             of `block` consecutive ranges, on at most `max_ranges` ranges per anchor (evenly thinned
             in time); `block=0` (default): one dense GP on the stratified `n_train` subsample.
         estimate_offset: as for `nls` (on by default: the offset is fitted with `nls`'s anchors first).
+        estimate_drift, drift_model: as for `nls` (`mean=anchor`, every model): the shared pose error nls estimates
+            from the ranges at its answer, the same estimate made once, is added to gp's covariance where no
+            `pose_sd_m` / `pose_drift` is stated (a statement wins); `jaxcal.trajectory.drift.drift_for_method`.
         min_ranges, planar_tol_m, planar_ratio, side, order, knot_dt_s: as for `ls`, and so are
             max_gap_s, time_offset_s, max_offset_s.
     """
 
     estimate_offset: bool = True
+    estimate_drift: bool = True
+    drift_model: str = "auto"
     target: str = "range"
     mean: str = "anchor"
     nu: float = 1.5
@@ -482,6 +488,8 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
         raise JaxcalError(f"parameter search: expected cuboid or gradient, got {p.search!r}")
     if p.mean not in ("constant", "anchor"):
         raise JaxcalError(f"parameter mean: expected constant or anchor, got {p.mean!r}")
+    if p.drift_model not in MODELS:
+        raise JaxcalError(f"parameter drift_model: expected one of {', '.join(MODELS)}, got {p.drift_model!r}")
     if p.model not in ("subsample", "path", "space", "excess"):
         raise JaxcalError(f"parameter model: expected subsample, path, space or excess, got {p.model!r}")
     if p.model == "excess" and (p.mean != "anchor" or p.excess_cells <= 0 or p.excess_rounds < 1 or p.excess_prior < 0):

@@ -36,6 +36,10 @@ measured slower on this CPU (the sequential loop over blocks inside BFGS) and no
    from the `nls` answer: the two estimates disagreeing by d means neither is known better than
    that. Directions the data cannot fix (the height from a flat route) keep the large variance and
    `finish` leaves such a height NaN.
+5. Shared pose error: where none is stated and `estimate_drift` is on (the default, as for `nls`), the one `nls`
+   estimates from the ranges at its answer (`jaxcal.trajectory.drift.drift_for_method`: the same estimate, made
+   once) is added, the part nls's stretch jackknife holds left out as for nls; the covariance floor of step 4 is
+   nls's covariance without it, so gp's ellipses were smaller than nls's on drifting poses (fourteenth round).
 """
 
 from __future__ import annotations
@@ -50,6 +54,7 @@ from jaxcal import solver as S
 from jaxcal.data import Result
 from jaxcal.params import with_overrides
 from jaxcal.trajectory.common import cauchy_weights, finish, report_fits, widen_covariance
+from jaxcal.trajectory.drift import drift_for_method
 from jaxcal.trajectory.gp_kernel import (
     Hyper,
     _cone,
@@ -266,6 +271,7 @@ def calibrate_anchor_mean(dataset, p, groups, info, n: int, planar) -> Result:
     cov0 = np.array(cov0, dtype=float)
     # nls's reported covariance, route cells included (`nls.cell_covariances`): the floor gp reports
     cov0 = nls.cell_covariances(groups, a0, b0, cov0, p_nls)
+    a_nls, b_nls = a0.copy(), b0.copy()  # nls's answer, where the shared pose error is estimated (step 5)
     # the covariance that sizes the step (fuse, bound): see `bound_clusters`; cov0 stays the reported floor
     cov_b = cov0
     if p.bound_clusters >= 0:
@@ -307,8 +313,12 @@ def calibrate_anchor_mean(dataset, p, groups, info, n: int, planar) -> Result:
         jnp.asarray(a) for a in (x.reshape(*shape, 3), r.reshape(shape), m.reshape(shape), s.reshape(shape), a0, b0)
     )
 
+    # the pose error settings enter only the covariance (step 5): the fit runs with their defaults, so a change
+    # of them reuses its compiled program (`p` is static there)
+    fit_p = eqx.tree_at(lambda q: (q.estimate_drift, q.drift_model), p, (True, "auto"))
+
     def fit(steps):
-        out = _fit_blocks(*args, eqx.tree_at(lambda q: q.max_steps, p, steps))
+        out = _fit_blocks(*args, eqx.tree_at(lambda q: q.max_steps, fit_p, steps))
         return out, out[4]
 
     (est, cov, hyp, bias, _), codes, steps = S.retry_unconverged(fit, p.max_steps)
@@ -335,8 +345,10 @@ def calibrate_anchor_mean(dataset, p, groups, info, n: int, planar) -> Result:
         bounded[a] = not np.allclose(est[a], proposed)  # the bound shortened the step (fused or not)
         d = est[a] - a0[a]
         cov[a] = widen_covariance(cov[a], cov0[a] + np.outer(d, d))
+    drift_info, pose_cov = drift_for_method(dataset, groups, a_nls, b_nls, cov, p, p_nls, "gp")
     info = dict(
         info,
+        **drift_info,
         fallback_nls=fallback.tolist(),
         bounded=bounded.tolist(),
         cone_spread_m=spread_gp.tolist(),
@@ -353,4 +365,4 @@ def calibrate_anchor_mean(dataset, p, groups, info, n: int, planar) -> Result:
     # an anchor's answer rests on both fits: the nls seed (and fallback) and the mean-model GP
     codes = np.maximum(np.asarray(codes), np.asarray(nls_codes))
     hint = f"raise max_steps (now {p.max_steps}; retried with {steps}) of the mean-model fit"
-    return finish(dataset, "gp", p, kept, est, cov, info, report_fits("gp", codes, kept, p, hint))
+    return finish(dataset, "gp", p, kept, est, cov, info, report_fits("gp", codes, kept, p, hint), pose_cov)

@@ -33,8 +33,9 @@ Fallback (a sanity check, no fuse, no bound): an anchor whose fitted position ex
 worse than `nls`'s (`cone_spread` above `max_spread_ratio` x nls's) or whose fit is not finite keeps the
 `nls` answer and covariance (`info_fallback_nls`; one warning line when taken).
 
-The driver (`nls` start and weights, fallback, flat-path height, covariance floor, report) is
-`calibrate_every_range`, shared with `model=space` (`gp_space`).
+The driver (`nls` start and weights, fallback, flat-path height, covariance floor, the shared pose error nls
+estimates (`estimate_drift`, `jaxcal.trajectory.drift.drift_for_method`), report) is `calibrate_every_range`,
+shared with `model=space` (`gp_space`) and `model=excess` (`gp_excess`).
 
 Revisits: s is the distance along the path, so a place passed twice at different s is two independent
 pieces of f (a spatial kernel would couple them); measured on hymn's 48 survey points in
@@ -56,6 +57,7 @@ from jaxcal.data import Result
 from jaxcal.errors import JaxcalError
 from jaxcal.params import with_overrides
 from jaxcal.trajectory.common import finish, report_fits, widen_covariance
+from jaxcal.trajectory.drift import drift_for_method
 from jaxcal.trajectory.gp_kernel import Hyper, _cone, hyper_penalty, laplace_fit
 
 __all__ = ["arc_length", "kalman_nlml", "path_nlml", "fit_path_all", "calibrate_path", "calibrate_every_range"]
@@ -228,8 +230,11 @@ def calibrate_every_range(
         if planar[k]:  # a flat path does not observe the height: the GP does not move it either
             est[k, 2] = a0[k, 2]
         cov[k] = widen_covariance(cov[k], cov0[k])
+    # the shared pose error nls would add, estimated once at nls's answer (`drift.drift_for_method`)
+    drift_info, pose_cov = drift_for_method(dataset, groups, a0, b0, cov, p, p_nls, "gp")
     info = dict(
         info,
+        **drift_info,
         model=model,
         fallback_nls=fallback.tolist(),
         cone_spread_m=spread_gp.tolist(),
@@ -244,4 +249,4 @@ def calibrate_every_range(
     kept = AnchorRanges(groups.position, groups.range, groups.mask)
     codes = np.maximum(np.asarray(codes), np.asarray(nls_codes))
     hint = f"raise max_steps (now {p.max_steps}; retried with {steps}) of the {model} GP fit"
-    return finish(dataset, "gp", p, kept, est, cov, info, report_fits("gp", codes, kept, p, hint))
+    return finish(dataset, "gp", p, kept, est, cov, info, report_fits("gp", codes, kept, p, hint), pose_cov)
