@@ -494,8 +494,6 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
             "parameters excess_cells > 0, excess_rounds >= 1, excess_prior >= 0 and excess_max_ranges >= 0 required, "
             f"got {p.excess_cells}, {p.excess_rounds}, {p.excess_prior}, {p.excess_max_ranges}"
         )
-    if p.model == "excess" and p.mean != "anchor":
-        raise JaxcalError(f"parameter model=excess needs mean=anchor, got {p.mean!r}")
     if p.model == "space" and (p.mean != "anchor" or p.n_basis < 2 or p.basis_margin <= 1.0):
         raise JaxcalError(
             f"parameter model=space needs mean=anchor, n_basis >= 2 and basis_margin > 1, got {p.mean!r}, "

@@ -146,7 +146,7 @@ def _em(init, held, fz, shape0, xc, r, m, c, sub, log_d, n_cells: int, rounds: i
         nll = -jnp.sum(jnp.where(ms, jnp.logaddexp(mix, out), 0.0))
         return (nll + 0.5 * jnp.sum(((th.shape - shape0) / _SHAPE_SD) ** 2)) / ns
 
-    def round_(carry, _):
+    def round_(carry, _, newton=newton):
         y, pi_c = carry
         pi = pi_c[cs]
         args = (jnp.log(pi), jnp.log1p(-pi))
@@ -168,8 +168,12 @@ def _em(init, held, fz, shape0, xc, r, m, c, sub, log_d, n_cells: int, rounds: i
         return (y, pi_c), S.outcome(sol)
 
     pi0 = jnp.full(n_cells + 1, 0.5, xc.dtype)
-    (y, pi_c), codes = jax.lax.scan(round_, (y0, pi0), None, length=rounds)
-    return unravel(y), pi_c, codes
+    # the first round from the identity: far from the optimum (the nls start) the Hessian is indefinite and a
+    # Newton start could lead BFGS to another local minimum of the mixture (1 of 20 test seeds did); from the
+    # second round on the start is the last round's minimum, where the exact Hessian is a safe start
+    (y, pi_c), code0 = round_((y0, pi0), None, newton=False)
+    (y, pi_c), codes = jax.lax.scan(round_, (y, pi_c), None, length=rounds - 1)
+    return unravel(y), pi_c, jnp.concatenate([code0[None], codes])
 
 
 @eqx.filter_jit
