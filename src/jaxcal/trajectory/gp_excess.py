@@ -22,8 +22,8 @@ fixed, the anchor, b and the class parameters minimise the negative log likeliho
 `nls` with b at the lower tail of nls's residuals); then pi(c) = (sum_c gamma_t + k pi_bar) / (n_c + k), gamma_t
 the posterior NLOS probability of range t, shrunk to the anchor's mean pi_bar by k = `excess_prior` pseudo
 ranges (a cell with few ranges keeps the anchor's average). Each round does not lower the likelihood. Speed
-(fourteenth round, 8x on 1e5 ranges): each round's BFGS starts from the exact inverse Hessian at the last
-round's answer (`jaxcal.solver.StartedBFGS`: about 16 steps a round instead of 60, the same minimum), and the EM
+(fourteenth round, 8x on 1e5 ranges): from the second round on, BFGS starts from the exact inverse Hessian at the
+last round's answer (`jaxcal.solver.StartedBFGS`: about 16 steps a round instead of 60, the same minimum), and the EM
 runs on at most `excess_max_ranges` (4000) ranges per anchor, evenly spaced in time (`thin_indices`; ranges at
 tens of hertz repeat each other's errors: on the simulated campus, odd seeds, 4000 were as accurate as all).
 On a flat path the height is held at `nls`'s. Covariance: the anchor block of the inverse Hessian of the
@@ -198,9 +198,9 @@ def fit_excess_all(
     Args:
         sub: (A, k) indices of the ranges the EM runs on (-1: padding; `thin_indices`), or None: every range. The
             start and the covariance use every range (the cells' probabilities apply to all of them).
-        newton: each round's BFGS starts from the exact inverse Hessian at the last round's answer
-            (`jaxcal.solver.StartedBFGS`: a few steps instead of about 60 from the identity); False: from the
-            identity (the reference the tests compare with; same minimum per round).
+        newton: from the second round on, BFGS starts from the exact inverse Hessian at the last round's answer
+            (`jaxcal.solver.StartedBFGS`: about 16 steps instead of 60 from the identity); False: from the
+            identity in every round (the reference the tests compare with; same minimum per round).
 
     Returns:
         (anchor (A, 3), covariance (A, 3, 3), bias (A,), Hyper (log s_L, log mu, log pi_bar: for the report),
