@@ -108,14 +108,15 @@ def test_fuse_equals_scalar_precision_weighting():
     np.testing.assert_allclose(gp_anchor.fuse(a0, c0, a1, c1), [0.25, 2.0, 2.0])
 
 
-def test_default_gp_is_bounded_by_nls_and_no_more_confident():
-    """The default gp: within max_shift_sigma of nls (Mahalanobis under nls's covariance; gp sizes its step
-    by nls's narrower model covariance), and its covariance at least nls's in every direction. Without the
-    mirror check's profile, which widens each method's covariance about its own estimate."""
+def test_subsample_gp_is_bounded_by_nls_and_no_more_confident():
+    """gp with model=subsample (the default before the fourteenth round): within max_shift_sigma of nls
+    (Mahalanobis under nls's covariance; gp sizes its step by nls's narrower model covariance), and its
+    covariance at least nls's in every direction. Without the mirror check's profile, which widens each
+    method's covariance about its own estimate."""
     from jaxcal.trajectory import nls
 
     ds = drone(noise=0.05)
-    res = gp.calibrate(ds, {"n_train": 60, "mirror_profile": 0})
+    res = gp.calibrate(ds, {"n_train": 60, "mirror_profile": 0, "model": "subsample"})
     ref = nls.calibrate(ds, {"mirror_profile": 0})
     assert res.params["mean"] == "anchor"
     for a in range(2):

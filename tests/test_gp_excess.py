@@ -77,5 +77,53 @@ def test_excess_parameters_are_checked():
     from jaxcal.sim.trajectory import simulate
     from jaxcal.trajectory import gp
 
-    with pytest.raises(JaxcalError, match="model=excess"):
-        gp.calibrate(simulate("small", seed=0), {"model": "excess", "excess_rounds": 0})
+    # checked whatever the model: with model=subsample they were ignored silently (a negative count accepted)
+    for model in ("excess", "subsample"):
+        for bad in ({"excess_rounds": 0}, {"excess_rounds": -1}, {"excess_max_ranges": -1}, {"excess_cells": 0}):
+            with pytest.raises(JaxcalError, match="excess_rounds >= 1"):
+                gp.calibrate(simulate("small", seed=0), {"model": model, **bad})
+
+
+def _zone_fit_args(rng):
+    pos, r, anchor = _zone_campaign(rng, n_laps=2)
+    n = r.size
+    cells = np.floor((pos[:, :2] - pos[:, :2].min(axis=0)) / 40.0 * 16).clip(0, 15).astype(int)
+    start = np.r_[anchor + rng.normal(0.0, 0.3, 3), 0.2]
+    args = (pos, r, np.ones(n, bool), cells[:, 0] * 16 + cells[:, 1], start[:3])
+    return [jnp.asarray(v)[None] for v in args] + [jnp.asarray(start[3:4]), jnp.asarray([True])], anchor
+
+
+def test_newton_started_em_equals_the_identity_started_one(rng):
+    """The fast path (each round's BFGS started from the exact inverse Hessian, `solver.StartedBFGS`) stops at the
+    same minimum per round as BFGS from the identity (the EM of the thirteenth round): the same anchor within
+    1 mm after every round's M-step, the same covariance."""
+    args, _ = _zone_fit_args(rng)
+    fast = gp_excess.fit_excess_all(*args, 256, 4, 5.0, 200)
+    ref = gp_excess.fit_excess_all(*args, 256, 4, 5.0, 200, None, False)
+    assert np.all(np.asarray(fast[4]) == 0) and np.all(np.asarray(ref[4]) == 0)
+    np.testing.assert_allclose(np.asarray(fast[0]), np.asarray(ref[0]), atol=1e-3)
+    np.testing.assert_allclose(np.asarray(fast[1]), np.asarray(ref[1]), rtol=1e-2, atol=1e-9)
+
+
+def test_em_on_every_range_by_index_equals_the_em_without_indices(rng):
+    """`sub` listing every range (thin_indices with k = 0 or k above the count) is the fit on all of them."""
+    args, _ = _zone_fit_args(rng)
+    mask = np.asarray(args[2])
+    full = gp_excess.fit_excess_all(*args, 256, 2, 5.0, 200)
+    for k in (0, mask.shape[1] + 5):
+        sub = jnp.asarray(gp_excess.thin_indices(mask, k))
+        got = gp_excess.fit_excess_all(*args, 256, 2, 5.0, 200, sub)
+        for a, b in zip(got[:3], full[:3], strict=True):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-12)
+
+
+def test_thin_indices_are_evenly_spaced_valid_ranges():
+    mask = np.zeros((3, 50), bool)
+    mask[0, :40] = True
+    mask[1, ::2] = True  # 25 valid
+    idx = gp_excess.thin_indices(mask, 10)
+    assert idx.shape == (3, 10)
+    assert idx[0, 0] == 0 and idx[0, -1] == 39 and np.all(np.diff(idx[0]) >= 4)
+    assert np.all(mask[1, idx[1]]) and idx[1, -1] == 48
+    assert np.all(idx[2] == -1)  # no valid range: padding only
+    np.testing.assert_array_equal(gp_excess.thin_indices(mask, 0)[1, :25], np.arange(0, 50, 2))

@@ -17,10 +17,12 @@ import logging
 from collections.abc import Callable
 from typing import TypeVar
 
+import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Int
+from jaxtyping import Array, Float, Int
 
 __all__ = [
     "CONVERGED",
@@ -34,6 +36,8 @@ __all__ = [
     "SolverReport",
     "report",
     "retry_unconverged",
+    "StartedBFGS",
+    "newton_start",
 ]
 
 CONVERGED, MAX_STEPS, DIVERGED, FAILED = 0, 1, 2, 3
@@ -143,3 +147,51 @@ def retry_unconverged(fit: Callable[[int], tuple[T, Array]], max_steps: int, fac
         max_steps *= factor
         out, codes = fit(max_steps)
     return out, codes, max_steps
+
+
+def _quiet(**_) -> None:
+    """optx.BFGS's default `verbose`: print nothing."""
+
+
+class StartedBFGS(optx.AbstractBFGS):
+    """Optimistix's BFGS (Armijo backtracking, Newton descent on the inverse-Hessian approximation), started from
+    a given inverse Hessian instead of the identity, for a flat parameter vector.
+
+    Where the parameters have unlike scales (metres of an anchor, log-scales of a density) BFGS from the
+    identity spends most of its steps learning the curvature; from the exact one (`newton_start`) its first step
+    is Newton's and it converges in a few. It stops at the same minimum under the same tolerances.
+
+    Attributes:
+        rtol, atol: as for `optx.BFGS`. hessian_inv: (P, P) symmetric positive definite start. The rest (norm,
+            descent, search) as `optx.BFGS`'s defaults.
+    """
+
+    rtol: float
+    atol: float
+    hessian_inv: Float[Array, "P P"]
+    norm: Callable
+    use_inverse: bool
+    descent: optx.NewtonDescent
+    search: optx.BacktrackingArmijo
+    verbose: Callable
+
+    def __init__(self, rtol: float, atol: float, hessian_inv: Float[Array, "P P"]):
+        self.rtol, self.atol, self.hessian_inv = rtol, atol, hessian_inv
+        self.norm, self.use_inverse = optx.max_norm, True
+        self.descent = optx.NewtonDescent(linear_solver=lx.Cholesky())  # as optx.BFGS
+        self.search = optx.BacktrackingArmijo()
+        self.verbose = _quiet
+
+    def init_hessian(self, y, f, grad):
+        op = lx.PyTreeLinearOperator(self.hessian_inv, jax.eval_shape(lambda: y), lx.positive_semidefinite_tag)
+        return optx.FunctionInfo.EvalGradHessianInv(f, grad, op), None
+
+
+def newton_start(fn: Callable, y: Float[Array, " P"], args, floor: float = 1e-6) -> Float[Array, "P P"]:
+    """The inverse of the exact Hessian of the scalar `fn(y, args)` at the flat `y`, made positive definite (absolute
+    eigenvalues, floored at `floor` x the largest): the start of `StartedBFGS`, a Newton step where the Hessian
+    is positive definite and a bounded step along a saddle or flat direction."""
+    h = jax.hessian(fn)(y, args)
+    ev, vec = jnp.linalg.eigh(0.5 * (h + h.T))
+    ev = jnp.maximum(jnp.abs(ev), floor * jnp.max(jnp.abs(ev)))
+    return (vec / ev) @ vec.T

@@ -59,7 +59,7 @@ Parametric mean (`mean="anchor"`, the default; `jaxcal.trajectory.gp_anchor`): t
 GP above has no notion of where the anchor is: the cuboid search minimises the GP's extrapolation
 when the anchor lies outside the region the tag covers, and the height is barely observable from
 near-planar trajectories (mean anchor errors of 4-8 m on the real recordings). `model="subsample"`
-(the default) models r = |p - a| + b + f(p) + e with the anchor a as a mean
+(the default until the fourteenth round) models r = |p - a| + b + f(p) + e with the anchor a as a mean
 parameter, seeded and bounded by `nls`, with a heavy-tailed (Cauchy-weighted) white noise e, on a
 stratified subsample (or, with
 `block`, every range under a block-diagonal covariance over stretches of consecutive ranges); see
@@ -68,10 +68,11 @@ that module. `mean="constant"` keeps the paper's GP and its searches. `model="pa
 the path's arc length, its marginal likelihood by a Kalman filter in O(n), no fuse or bound.
 `model="space"` (`jaxcal.trajectory.gp_space`, an option): the same over the horizontal position, f a
 Matern GP on a Hilbert-space basis (O(n m^2) once, then O(n m) per step), for routes driven in laps.
-`model="excess"` (`jaxcal.trajectory.gp_excess`, an option): every range, the residual a one-sided NLOS
-excess (a skewed LOS / NLOS mixture whose NLOS probability is a field over route cells), no fuse or bound:
-better than `nls` on simulated NLOS zones, under drift and on hanyang NLOS, within 1.2x on the shared
-recordings (docs/benchmarks/trajectory.md, thirteenth round), but 2x the default's time on 1e5 ranges.
+`model="excess"` (`jaxcal.trajectory.gp_excess`, the default since the fourteenth round): every range (at most
+`excess_max_ranges` per anchor, evenly spaced in time), the residual a one-sided NLOS excess (a skewed LOS / NLOS
+mixture whose NLOS probability is a field over route cells), no fuse or bound: better than `nls` on simulated
+NLOS zones, under drift and on hanyang NLOS, within 1.2x on the shared recordings (docs/benchmarks/trajectory.md,
+thirteenth and fourteenth rounds).
 
 tinygp is not used: it would add a dependency for a dense GP with one kernel, and its Matern kernels
 are the half-integer ones only (no nu = 5/3).
@@ -176,20 +177,22 @@ class GPParams(TrajectoryParams):
             covariance s^2 (J^T W J)^-1; -1: the covariance `nls` reports, over `cov_clusters` and
             `n_clusters` stretches). Either way the covariance is at least the one `nls` reports before the
             mirror check's profile (which then widens each method's about its own estimate).
-        model: `mean=anchor` only: `subsample` (default: the spatial GP on `n_train` ranges, fused with and
-            bounded by `nls`) or `path` (`jaxcal.trajectory.gp_path`: every range,
-            r = |p - a| + b + f(s) + e
-            with f a Matern `nu` (0.5 or 1.5) GP along the path's arc length s, by a Kalman filter; no fuse
-            or bound, `nls` is the start and the fallback) or `space` (`jaxcal.trajectory.gp_space`: as `path`
-            with f a Matern `nu` GP over the horizontal position, on a Hilbert-space basis) or `excess`
-            (`jaxcal.trajectory.gp_excess`: every range, a one-sided NLOS excess whose probability is
-            tied to route cells; no fuse or bound; fuse, bound, n_train, block only apply to `subsample`).
+        model: `mean=anchor` only: `excess` (default, below) or `subsample` (the default until the fourteenth
+            round: the spatial GP on `n_train` ranges, fused with and bounded by `nls`) or `path`
+            (`jaxcal.trajectory.gp_path`: every range, r = |p - a| + b + f(s) + e with f a Matern `nu` (0.5 or
+            1.5) GP along the path's arc length s, by a Kalman filter; no fuse or bound, `nls` is the start and
+            the fallback) or `space` (`jaxcal.trajectory.gp_space`: as `path` with f a Matern `nu` GP over the
+            horizontal position, on a Hilbert-space basis); `excess` (`jaxcal.trajectory.gp_excess`): every
+            range, a one-sided NLOS excess whose probability is tied to route cells; no fuse or bound. fuse,
+            bound, n_train, block only apply to `subsample`.
         n_basis, basis_margin: `model=space` only: sine basis functions per horizontal axis (n_basis^2 in
             all) on the positions' box grown by the factor basis_margin (> 1); max_signal: the signal
             variance at most this times the variance of the Cauchy-weighted `nls` residuals (soft bound).
-        excess_cells, excess_rounds, excess_prior: `model=excess` only (`jaxcal.trajectory.gp_excess`, the
-            one-sided NLOS excess on every range): route cells along the longer side of each anchor's box, EM
-            rounds, pseudo ranges shrinking a cell's NLOS probability to the anchor's mean.
+        excess_cells, excess_rounds, excess_prior, excess_max_ranges: `model=excess` only
+            (`jaxcal.trajectory.gp_excess`, the one-sided NLOS excess): route cells along the longer side of each
+            anchor's box, EM rounds, pseudo ranges shrinking a cell's NLOS probability to the anchor's mean, and
+            the most ranges per anchor the EM runs on (evenly spaced in time; 0 = all). Checked whatever the
+            model.
         block, max_ranges: `mean=anchor` only: the GP's covariance is block-diagonal over blocks
             of `block` consecutive ranges, on at most `max_ranges` ranges per anchor (evenly thinned
             in time); `block=0` (default): one dense GP on the stratified `n_train` subsample.
@@ -228,13 +231,14 @@ class GPParams(TrajectoryParams):
     block: int = 0
     max_ranges: int = 4096
     bound_clusters: int = 0
-    model: str = "subsample"
+    model: str = "excess"
     n_basis: int = 20
     max_signal: float = 1.0
     basis_margin: float = 1.5
     excess_cells: float = 16.0
     excess_rounds: int = 8
     excess_prior: float = 5.0
+    excess_max_ranges: int = 4000
 
 
 def fit_hyper(x, y, mask, init: Hyper, nu: float = 1.5, jitter: float = 1e-6, max_steps: int = 200):
@@ -492,10 +496,11 @@ def calibrate(dataset, params=None, config=None, progress=None) -> Result:
         raise JaxcalError(f"parameter drift_model: expected one of {', '.join(MODELS)}, got {p.drift_model!r}")
     if p.model not in ("subsample", "path", "space", "excess"):
         raise JaxcalError(f"parameter model: expected subsample, path, space or excess, got {p.model!r}")
-    if p.model == "excess" and (p.mean != "anchor" or p.excess_cells <= 0 or p.excess_rounds < 1 or p.excess_prior < 0):
+    # checked whatever the model, so that a wrong value is not ignored silently where it does not apply
+    if not (p.excess_cells > 0 and p.excess_rounds >= 1 and p.excess_prior >= 0 and p.excess_max_ranges >= 0):
         raise JaxcalError(
-            "parameter model=excess needs mean=anchor, excess_cells > 0, excess_rounds >= 1 and excess_prior >= 0, "
-            f"got {p.mean!r}, {p.excess_cells}, {p.excess_rounds}, {p.excess_prior}"
+            "parameters excess_cells > 0, excess_rounds >= 1, excess_prior >= 0 and excess_max_ranges >= 0 required, "
+            f"got {p.excess_cells}, {p.excess_rounds}, {p.excess_prior}, {p.excess_max_ranges}"
         )
     if p.model == "space" and (p.mean != "anchor" or p.n_basis < 2 or p.basis_margin <= 1.0):
         raise JaxcalError(
