@@ -275,12 +275,6 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None, pose_cov_ext
     info = {k: v for k, v in info.items() if k != "offset_sensitivity"}
     cov = cov + pose_cov
     flat, zstd = unobservable_height(groups, est, p)
-    from jaxcal.trajectory.mirror import compare_sides
-
-    # the profile across the path's plane sizes a flat anchor's horizontal covariance too (its horizontal fit
-    # depends on the height the ranges cannot fix: `compare_sides` step 5), so it runs before that height is NaN
-    sides = compare_sides(groups, est, cov, p, unobservable=flat)
-    est, cov = sides.position, sides.covariance
     if flat.any():
         est[flat, 2] = np.nan
         cov[flat, 2, :] = np.nan
@@ -295,6 +289,10 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None, pose_cov_ext
             len(names),
             ", ".join(names[:8]) + (", ..." if len(names) > 8 else ""),
         )
+    from jaxcal.trajectory.mirror import compare_sides
+
+    sides = compare_sides(groups, est, cov, p)
+    est, cov = sides.position, sides.covariance
     cov[sides.moved] += pose_cov[sides.moved]  # the other side's covariance is the fit's alone
     ids = dataset.anchor_ids
     if sides.ambiguous.any():

@@ -274,7 +274,7 @@ def _profile_all(arrays: tuple, n_clusters: int, max_steps: int, n_grid: int, n_
     return jax.vmap(one)(*arrays)
 
 
-def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p, unobservable=None) -> SideCheck:
+def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
     """The mirror-image check of the anchors with a finite estimate (see the module docstring).
 
     Args:
@@ -283,10 +283,6 @@ def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p, unobservable=None
             positions are planar (`is_planar`): their side is the convention `p.side`). cov: (A, 3, 3) [m^2].
         p: TrajectoryParams (`mirror_z`, `mirror_min_sep_m`, `min_ranges`; `n_clusters` and `min_scale_m`
             where the method has them, else 16 and 0.05 m).
-        unobservable: (A,) bool or None: anchors whose height the caller will leave NaN because the path cannot
-            observe it (`common.unobservable_height`; their estimate's height still finite here). Their profile
-            (step 4, on the conventional side) widens the covariance, and step 5 adds the horizontal fits at every
-            height of the inner span, as for a height left NaN by the side test.
 
     Returns:
         SideCheck. A fit that did not converge counts as no alternative (nothing is changed).
@@ -345,18 +341,15 @@ def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p, unobservable=None
             dh = x1[k, :2] - est[a, :2]
             out.covariance[a, :2, :2] += 0.5 * np.outer(dh, dh)
     if p.mirror_profile > 1:
-        flat = np.zeros(a_n, bool) if unobservable is None else np.asarray(unobservable, bool)
-        data = (pos, rng, mask, cells, n_cells)
-        _apply_profile(out, todo, planar[todo], data, (x0b, scale, centre, normal), p, flat[todo])
+        _apply_profile(out, todo, planar[todo], (pos, rng, mask, cells, n_cells), (x0b, scale, centre, normal), p)
     return out
 
 
-def _apply_profile(out: SideCheck, todo, planar, data, fit, p, flat) -> None:
+def _apply_profile(out: SideCheck, todo, planar, data, fit, p) -> None:
     """Step 4 (module doc), in place on `out`: the profile across the plane of every anchor in `todo` that was
     not moved; the profile fits within `mirror_z` widen the covariance, and one on the other side of the
     plane, more than `mirror_min_sep_m` from the estimate, leaves the height NaN (`ambiguous`). A planar
-    path (`planar`, (len(todo),)) has its side by convention (`p.side`): only that side's fits count. Step 5
-    for the ambiguous ones and for `flat` ((len(todo),) bool: heights the caller leaves NaN)."""
+    path (`planar`, (len(todo),)) has its side by convention (`p.side`): only that side's fits count."""
     pos, rng, mask, cells, n_cells = data
     x0b, scale, centre, normal = fit
     cov = out.covariance[todo]
@@ -401,9 +394,7 @@ def _apply_profile(out: SideCheck, todo, planar, data, fit, p, flat) -> None:
         # (the outer points reach as far as the covariance, which for a height the ranges cannot fix is the
         # longest range: their fits, rejected by the ranges, made the envelope metres wide; tenth round)
         span = converged & inner_k
-        if planar[k]:
-            span &= conventional
-        if (out.ambiguous[a] or flat[k]) and span.any():
+        if out.ambiguous[a] and span.any():
             out.covariance[a, :2, :2] += height_envelope(pts[k][span, :2] - out.position[a, :2])
             out.widened[a] = True
 
