@@ -43,6 +43,24 @@ SMALL = dict(
     likelihood="dense",
 )
 
+# The objective's value and gradient as one compiled program: the tests take the gradient and the
+# central differences' values from it (a separate jit of the objective alone compiled the forward
+# filter a second time: ~1/4 of each gradient test's time), and tests on the same problem shapes share it.
+value_and_grad = jax.jit(jax.value_and_grad(T.objective))
+
+
+def gradient_and_central_differences(theta, prob, h: float = 1e-5):
+    """(gradient, central differences with step h) of `T.objective` at theta, both from `value_and_grad`."""
+    g = np.asarray(value_and_grad(theta, prob)[1])
+    fd = np.array(
+        [
+            (float(value_and_grad(theta.at[i].add(h), prob)[0]) - float(value_and_grad(theta.at[i].add(-h), prob)[0]))
+            / (2 * h)
+            for i in range(theta.shape[0])
+        ]
+    )
+    return g, fd
+
 
 def test_soft_cut_reduces_to_hard_rule():
     rng = np.random.default_rng(1)
@@ -76,16 +94,8 @@ def test_gradient_matches_finite_differences(kind, model, n):
     mix = {"nlos_weight": 0.3, "nlos_mean_m": 1.2} if model == "mixture" else {}
     theta = T.theta_of(0.8, 0.7, 0.6, jnp.float64, **mix)
     assert theta.shape == (len(T.tuned_names(model)),)
-    f = jax.jit(T.objective)
-    g = np.asarray(jax.jit(jax.grad(T.objective))(theta, prob))
+    g, fd = gradient_and_central_differences(theta, prob)
     assert np.all(np.isfinite(g)) and np.any(np.abs(g) > 1e-6)
-    h = 1e-5
-    fd = np.array(
-        [
-            (float(f(theta.at[i].add(h), prob)) - float(f(theta.at[i].add(-h), prob))) / (2 * h)
-            for i in range(theta.shape[0])
-        ]
-    )
     # central differences in float64: truncation ~h^2, rounding ~1e-16 / h
     np.testing.assert_allclose(g, fd, rtol=2e-4, atol=1e-7)
 
@@ -215,8 +225,8 @@ def test_segmented_scan_equals_one_scan(likelihood):
     seg3 = dataclasses.replace(prob, segment=3)
     one = dataclasses.replace(prob, segment=7)
     theta = T.theta_of(0.8, 0.7, 0.6, jnp.float64)
-    g3 = jax.grad(T.objective)(theta, seg3)
-    g1 = jax.grad(T.objective)(theta, one)
+    g3 = value_and_grad(theta, seg3)[1]  # compiled: eagerly, the ops outside the scans compiled one by one
+    g1 = value_and_grad(theta, one)[1]
     np.testing.assert_allclose(np.asarray(g3), np.asarray(g1), rtol=1e-10)
 
 
@@ -268,15 +278,7 @@ def test_window_path_gradient_matches_finite_differences():
     prob, _ = T.make_problem(ds, p, None, "nlpl", tau_temp=0.1)
     assert prob.cfg.window == 5
     theta = T.theta_of(0.8, 0.7, 0.6, jnp.float64)
-    f = jax.jit(T.objective)
-    g = np.asarray(jax.jit(jax.grad(T.objective))(theta, prob))
-    h = 1e-5
-    fd = np.array(
-        [
-            (float(f(theta.at[i].add(h), prob)) - float(f(theta.at[i].add(-h), prob))) / (2 * h)
-            for i in range(theta.shape[0])
-        ]
-    )
+    g, fd = gradient_and_central_differences(theta, prob)
     assert np.all(np.isfinite(g)) and np.any(np.abs(g) > 1e-6)
     np.testing.assert_allclose(g, fd, rtol=2e-4, atol=1e-7)
 
@@ -295,12 +297,8 @@ def test_tail_gradient_starts_from_calibrates_run():
         assert prob.inp.z.shape[0] == 3 and prob.k0 == 6
         assert jax.tree.leaves(prob.state)[0].shape[0] == 2  # one state per fold
         theta = T.theta_of(0.8, 0.7, 0.6, jnp.float64)
-        f = jax.jit(T.objective)
-        g = np.asarray(jax.jit(jax.grad(T.objective))(theta, prob))
-        h = 1e-5
-        fd = np.array(
-            [(float(f(theta.at[i].add(h), prob)) - float(f(theta.at[i].add(-h), prob))) / (2 * h) for i in range(3)]
-        )
+        g, fd = gradient_and_central_differences(theta, prob)
+        assert g.shape == (3,)
     assert np.all(np.isfinite(g)) and np.any(np.abs(g) > 1e-6)
     np.testing.assert_allclose(g, fd, rtol=2e-4, atol=1e-7)
     # tune with a tail: the guard's start figure is that of calibrate's run, unchanged by the split
@@ -358,9 +356,9 @@ def test_consensus_with_the_truth_as_reference_is_the_truth_objective():
     got, order2 = T.make_problem(ds, p, None, "consensus", tau_temp=0.1, reference=true)
     assert got.kind == "consensus" and (order == order2).all()
     theta = T.theta_of(0.8, 0.7, 0.6, jnp.float64)
-    v = [float(jax.jit(T.objective)(theta, q)) for q in (want, got)]
+    vg = [value_and_grad(theta, q) for q in (want, got)]
+    v, g = [float(a) for a, _ in vg], [np.asarray(b) for _, b in vg]
     assert np.isfinite(v[0]) and v[1] == pytest.approx(v[0], rel=1e-12)
-    g = [np.asarray(jax.jit(jax.grad(T.objective))(theta, q)) for q in (want, got)]
     np.testing.assert_allclose(g[1], g[0], rtol=1e-10, atol=1e-14)
     m = E.hard_metrics(ds, p, None, reference=true)
     assert m["consensus_m"] == pytest.approx(m["rmse_m"], rel=1e-6)
