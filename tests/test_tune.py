@@ -320,9 +320,12 @@ def test_bfgs_stops_when_the_objective_stops_falling(monkeypatch):
 
 def test_bfgs_values_are_the_objective_at_start_and_end(monkeypatch):
     """`_bfgs` reports the objective at the start and at the point it returns from the solver's
-    own evaluations (no extra runs): the same numbers as evaluating the objective there."""
+    own evaluations (no extra runs): the same numbers as evaluating the objective there. A second run
+    on the same shapes reuses the compiled step (no new trace of the objective) and ends at the same point."""
+    traces = []
 
     def f(theta, prob):
+        traces.append(1)  # runs only when JAX traces it
         c, w = jnp.asarray([1.0, -2.0, 0.5], theta.dtype), jnp.asarray([1.0, 3.0, 0.2], theta.dtype)
         return jnp.sum((theta - c) ** 2 * w) + 0.1
 
@@ -330,8 +333,13 @@ def test_bfgs_values_are_the_objective_at_start_and_end(monkeypatch):
     theta0 = jnp.zeros(3, jnp.float32)
     seen = []
     theta, steps, ok, message, first, last = T._bfgs(theta0, None, 1e-6, 1e-8, 30, lambda k, v: seen.append(v))
+    traced = len(traces)
     assert first == float(f(theta0, None)) and last == float(f(theta, None)) == seen[-1]
     assert last < 0.1 + 1e-3 < first and steps <= 30
+    del traces[traced:]  # the two evaluations just above
+    again = T._bfgs(theta0, None, 1e-6, 1e-8, 30)
+    assert len(traces) == traced and again[1:] == (steps, ok, message, first, last)
+    np.testing.assert_array_equal(np.asarray(again[0]), np.asarray(theta))
 
 
 def test_theta_round_trip_with_the_mixture_parameters():
@@ -458,7 +466,8 @@ def test_consensus_without_a_batch_fit_falls_back_and_says_so(monkeypatch):
         raise JaxcalError("t: the batch fit placed no node: no consensus reference")
 
     monkeypatch.setattr(E, "consensus_reference", no_fit)
-    res = T.tune(make_mesh(k=4, seed=9), SMALL, None, objective_name="consensus", tau_temp=0.1, max_steps=1)
+    # 6 epochs: the shapes of `test_tune_lowers_objective...` (its compiled BFGS step and hard runs are reused)
+    res = T.tune(make_mesh(k=6, seed=9), SMALL, None, objective_name="consensus", tau_temp=0.1, max_steps=1)
     assert res.objective == "consensus" and res.settings["objective_used"] == "nlpl"  # 5 nodes: no folds
     assert "placed no node" in res.settings["fallback_reason"] and res.hard_key == "nlpl"
     line = _summary(res, "consensus", "p.json")

@@ -336,17 +336,16 @@ def _bfgs(theta0, prob: Problem | tuple[Problem, ...], rtol: float, atol: float,
         theta).
     """
     solver: optx.AbstractMinimiser = optx.BFGS(rtol=rtol, atol=atol)
-
-    def fn(theta, args):
-        v = objective(theta, args)
-        return v, v
-
-    opts: dict = {}
-    tags: frozenset = frozenset()
+    f = objective  # looked up per call (a test may replace it); the compiled step is cached per function
     f_struct = jax.ShapeDtypeStruct((), theta0.dtype)
-    step = eqx.filter_jit(lambda y, state, args: solver.step(fn, y, args, opts, state, tags))
-    terminate = eqx.filter_jit(lambda y, state, args: solver.terminate(fn, y, args, opts, state, tags))
-    state = solver.init(fn, theta0, prob, opts, f_struct, f_struct, tags)
+    state = solver.init(_with_aux(f), theta0, prob, {}, f_struct, f_struct, frozenset())
+
+    def step(y, state, args):
+        return _bfgs_step(f, solver, y, state, args)
+
+    def terminate(y, state, args):
+        return _bfgs_terminate(f, solver, y, state, args)
+
     theta, steps = theta0, 0
     first = best = math.nan
     rejected, small = 0, False
@@ -386,6 +385,29 @@ def _bfgs(theta0, prob: Problem | tuple[Problem, ...], rtol: float, atol: float,
 
 
 PATIENCE = 4  # line-search rejections in a row before `_bfgs` stops
+
+
+def _with_aux(f):
+    """`f(theta, args)` as Optimistix's (value, aux) function."""
+
+    def fn(theta, args):
+        v = f(theta, args)
+        return v, v
+
+    return fn
+
+
+# Module-level programs (the objective and the solver are static arguments): a later `tune` on problems of
+# the same shapes, in the same process, reuses the compiled BFGS step (a notebook re-running a cell,
+# `tune` on several configurations) instead of tracing and compiling it again.
+@eqx.filter_jit
+def _bfgs_step(f, solver, y, state, args):
+    return solver.step(_with_aux(f), y, args, {}, state, frozenset())
+
+
+@eqx.filter_jit
+def _bfgs_terminate(f, solver, y, state, args):
+    return solver.terminate(_with_aux(f), y, args, {}, state, frozenset())
 
 
 @dataclasses.dataclass(frozen=True)
