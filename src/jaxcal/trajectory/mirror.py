@@ -166,10 +166,19 @@ def _compare_one(
     r_est = rng - _dist(pos, est)
     b0 = jnp.nanmedian(jnp.where(mask, r_est, jnp.nan))
     c = jnp.maximum(2.385 * 1.4826 * jnp.nanmedian(jnp.where(mask, jnp.abs(r_est - b0), jnp.nan)), min_scale)
-    x0, k0 = _cauchy_fit(pos, rng, mask, jnp.concatenate([est, b0[None]]), c, max_steps)
     centre, n = local_plane(pos, rng, mask)
-    mirror = x0[:3] - 2.0 * jnp.dot(x0[:3] - centre, n) * n
-    x1, k1 = _cauchy_fit(pos, rng, mask, jnp.concatenate([mirror, x0[3:]]), c, max_steps)
+
+    def fit(start, second):
+        # the refit from the estimate, then from its fit's mirror image: one Levenberg-Marquardt program for both
+        # (a scan of two; two calls compiled it twice)
+        x0 = jnp.where(
+            second, jnp.concatenate([start[:3] - 2.0 * jnp.dot(start[:3] - centre, n) * n, start[3:]]), start
+        )
+        x, k = _cauchy_fit(pos, rng, mask, x0, c, max_steps)
+        return x, (x, k)
+
+    _, (xs, ks) = jax.lax.scan(fit, jnp.concatenate([est, b0[None]]), jnp.array([False, True]))
+    x0, x1, k0, k1 = xs[0], xs[1], ks[0], ks[1]
     res0 = _dist(pos, x0[:3]) + x0[3] - rng
     res1 = _dist(pos, x1[:3]) + x1[3] - rng
     # + 1 nat^2 in the variance (`_vuong_z`): an exact mirror (a path in one plane) gives a difference and a
