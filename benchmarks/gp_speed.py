@@ -53,7 +53,10 @@ def main():
     base = {"dataset": f"campus seed={a.seed} rate={a.rate:g}", "ranges": int(ds.range.size)}
     if "nls" in a.methods:
         _, secs, err = timed(ds, "nls", {})
-        print(json.dumps({**base, "method": "nls", **secs, "mean_error_m": err, "load1": round(os.getloadavg()[0], 2)}))
+        print(
+            json.dumps({**base, "method": "nls", **secs, "mean_error_m": err, "load1": round(os.getloadavg()[0], 2)}),
+            flush=True,
+        )
     for n in a.n if "gp" in a.methods else []:
         p = {"n_train": n, "block": a.block, "model": a.model}
         _, secs, err = timed(ds, "gp", p)
