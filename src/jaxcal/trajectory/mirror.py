@@ -355,11 +355,11 @@ def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
     rng = np.asarray(groups.range)
     cells, n_cells = route_cells(groups, p)
     cells = cells[todo]
-    k, valid = _padded(todo.size)  # rows of `todo`, padded
+    pad, valid = _padded(todo.size)  # rows of `todo`, padded
     x0, x1, code, z, cov1, x0b, x1b, scale, centre, normal = (
         np.array(v)[: todo.size]
         for v in _compare_all(
-            tuple(jnp.asarray(v[todo[k]]) for v in (pos, rng, mask, est)) + (jnp.asarray(cells[k]),),
+            tuple(jnp.asarray(v[todo[pad]]) for v in (pos, rng, mask, est)) + (jnp.asarray(cells[pad]),),
             jnp.asarray(valid),
             int(getattr(p, "n_clusters", 16)),
             float(getattr(p, "min_scale_m", 0.05)),
@@ -398,12 +398,12 @@ def _apply_profile(out: SideCheck, todo, planar, data, fit, p) -> None:
     x0b, scale, centre, normal = fit
     cov = out.covariance[todo]
     sd_n = np.sqrt(np.maximum(np.einsum("ai,aij,aj->a", normal, np.nan_to_num(cov), normal), 0.0))
-    k, valid = _padded(len(todo))  # rows of `todo`, padded (`anchor_bucket`)
+    pad, valid = _padded(len(todo))  # rows of `todo`, padded (`anchor_bucket`)
     rows = (pos[todo], rng[todo], mask[todo], x0b, scale, centre, normal, sd_n, cells)
     pts, zk, codes = (
         np.asarray(v)[: len(todo)]
         for v in _profile_all(
-            tuple(jnp.asarray(v[k]) for v in rows),
+            tuple(jnp.asarray(v[pad]) for v in rows),
             jnp.asarray(valid),
             int(getattr(p, "n_clusters", 16)),
             100,
