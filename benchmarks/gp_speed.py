@@ -3,11 +3,13 @@ size (JSON lines). `--model path` or `space`: the path or spatial GP on every ra
 is then unused: give one).
 
     python benchmarks/gp_speed.py [--rate 150] [--n 100 300 1000] [--seed 0] [--block 0] [--model path|space]
+        [--methods nls gp]
 
 The simulated campus (10 anchors, NLOS behind buildings) ranged at `--rate` Hz per anchor (150 Hz:
 about 1e5 ranges). Per n_train: `gp` cold (JIT compilation included) and warm seconds, wall and
 process CPU (CPU is the figure to compare on a shared machine), mean anchor error; `nls` alone for
-reference. On a shared CPU set
+reference, first, in the same process (so gp's cold call reuses what nls compiled; `--methods gp`: gp alone, cold
+in a fresh process, as the command line runs it without the compile cache). On a shared CPU set
 XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1".
 """
 
@@ -44,24 +46,18 @@ def main():
     ap.add_argument("--n", nargs="*", type=int, default=[100, 300, 1000])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--block", type=int, default=0)
-    ap.add_argument("--model", default="subsample", help="gp model: subsample, path or space")
+    ap.add_argument("--model", default="subsample", help="gp model: subsample, path, space or excess")
+    ap.add_argument("--methods", nargs="*", default=["nls", "gp"], help="nls first, then gp (either may be left out)")
     a = ap.parse_args()
     ds = simulate("campus", seed=a.seed, range_rate_hz=a.rate)
     base = {"dataset": f"campus seed={a.seed} rate={a.rate:g}", "ranges": int(ds.range.size)}
-    _, secs, err = timed(ds, "nls", {})
-    print(
-        json.dumps(
-            {
-                **base,
-                "method": "nls",
-                **secs,
-                "mean_error_m": err,
-                "load1": round(os.getloadavg()[0], 2),
-            }
-        ),
-        flush=True,
-    )
-    for n in a.n:
+    if "nls" in a.methods:
+        _, secs, err = timed(ds, "nls", {})
+        print(
+            json.dumps({**base, "method": "nls", **secs, "mean_error_m": err, "load1": round(os.getloadavg()[0], 2)}),
+            flush=True,
+        )
+    for n in a.n if "gp" in a.methods else []:
         p = {"n_train": n, "block": a.block, "model": a.model}
         _, secs, err = timed(ds, "gp", p)
         print(

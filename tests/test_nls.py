@@ -213,6 +213,22 @@ def test_covariance_at_the_fit_is_nls_covariance_and_its_parts_are_narrower():
             assert np.linalg.eigvalsh(jack - model[a]).min() > -1e-12 * np.trace(model[a])
 
 
+def test_start_fit_without_covariance_is_the_same_fit():
+    """`with_cov=False` (the clock offset's start fit, `prepare_offset`) compiles the fit without the jackknifes:
+    the anchors and biases are those of the full program (bit for bit: the same operations), the covariances NaN."""
+    from jaxcal.trajectory.poses import prepare_poses
+
+    ds = lissajous(noise=0.05, outliers=20, seed=3)
+    p = nls.NLSParams()
+    groups, _ = prepare_poses(ds, p)
+    (est, _, bias, codes), _, _ = nls.solve_all_checked(groups, p)
+    (est0, cov0, bias0, codes0), _, _ = nls.solve_all_checked(groups, p, with_cov=False)
+    np.testing.assert_array_equal(np.asarray(est0), np.asarray(est))
+    np.testing.assert_array_equal(np.asarray(bias0), np.asarray(bias))
+    np.testing.assert_array_equal(np.asarray(codes0), np.asarray(codes))
+    assert np.isnan(np.asarray(cov0)).all()
+
+
 @pytest.mark.parametrize(
     "bad",
     [{"mirror_profile": -3}, {"mirror_z": -1.0}, {"side": 0.0}, {"min_ranges": 0}, {"max_gap_s": float("nan")}],

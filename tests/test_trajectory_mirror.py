@@ -127,3 +127,39 @@ def test_nan_height_horizontal_ellipse_holds_the_fit_at_every_height_near_the_pl
         fit = least_squares(residual, y0, loss="cauchy", f_scale=scale, xtol=1e-10, ftol=1e-10)
         d = anchor(fit.x)[:2] - res.position[0, :2]
         assert d @ np.linalg.solve(cov, d) <= q95, (u, d)
+
+
+def test_padded_mapped_side_check_equals_the_vmapped_one(rng):
+    """The side check's programs run on anchors padded to `anchor_bucket` rows, one anchor after the other
+    (`mirror._map_valid`: `lax.map`, padding rows skipped). Reference: the plain vmap over the real anchors (the
+    code before the fifteenth round), here of the profile across the plane (the costly one; `_compare_all` maps
+    the same way): equal to rounding (1e-6 relative: batched and single arithmetic differ in the last bits); 3
+    anchors in a bucket of 4."""
+    import functools
+
+    import jax
+    import jax.numpy as jnp
+
+    from jaxcal.trajectory import mirror
+
+    assert [mirror.anchor_bucket(k) for k in (1, 2, 3, 5, 8, 9)] == [1, 2, 4, 8, 8, 16]
+    t = np.arange(0.0, 60.0, 0.1)
+    pos = np.stack([6 * np.cos(0.2 * t), 5 * np.sin(0.4 * t), 0.9 * np.cos(0.2 * t)], 1)
+    anchors = np.array([[2.0, 6.5, 2.0], [-4.0, 1.0, 0.8], [1.0, -7.0, 3.0]]) + rng.normal(0, 0.3, (3, 3))
+    rng_m = np.linalg.norm(pos[None] - anchors[:, None], axis=2) + 0.1 + 0.05 * rng.normal(size=(3, t.size))
+    mask = np.ones((3, t.size), bool)
+    mask[1, -100:] = False
+    cells = np.where(mask, (pos[None, :, 0] > 0).astype(np.int64), 2)
+    centre = np.zeros((3, 3))
+    normal = np.tile(np.array([-0.15, 0.0, 1.0]) / np.hypot(0.15, 1.0), (3, 1))
+    x0 = np.concatenate([anchors + 0.05, np.full((3, 1), 0.1)], 1)
+    args = (np.broadcast_to(pos, (3, *pos.shape)), rng_m, mask, x0, np.full(3, 0.2), centre, normal, np.full(3, 0.3))
+    args = (*args, cells)
+    k, valid = mirror._padded(3)
+    assert k.size == 4 and valid.tolist() == [True, True, True, False]
+    got = mirror._profile_all(tuple(jnp.asarray(v)[k] for v in args), jnp.asarray(valid), 16, 100, 5, 2)
+    one = functools.partial(mirror._profile_one, n_clusters=16, max_steps=100, n_grid=5, n_cells=2)
+    ref = jax.vmap(one)(*(jnp.asarray(v) for v in args))
+    for g, r in zip(got, ref, strict=True):
+        assert np.asarray(g).shape[0] == 4 and not np.asarray(g)[3].any()  # the padding row: skipped, zeros
+        np.testing.assert_allclose(np.asarray(g)[:3], np.asarray(r), rtol=1e-6, atol=1e-9)

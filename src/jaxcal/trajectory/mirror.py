@@ -166,10 +166,19 @@ def _compare_one(
     r_est = rng - _dist(pos, est)
     b0 = jnp.nanmedian(jnp.where(mask, r_est, jnp.nan))
     c = jnp.maximum(2.385 * 1.4826 * jnp.nanmedian(jnp.where(mask, jnp.abs(r_est - b0), jnp.nan)), min_scale)
-    x0, k0 = _cauchy_fit(pos, rng, mask, jnp.concatenate([est, b0[None]]), c, max_steps)
     centre, n = local_plane(pos, rng, mask)
-    mirror = x0[:3] - 2.0 * jnp.dot(x0[:3] - centre, n) * n
-    x1, k1 = _cauchy_fit(pos, rng, mask, jnp.concatenate([mirror, x0[3:]]), c, max_steps)
+
+    def fit(start, second):
+        # the refit from the estimate, then from its fit's mirror image: one Levenberg-Marquardt program for both
+        # (a scan of two; two calls compiled it twice)
+        x0 = jnp.where(
+            second, jnp.concatenate([start[:3] - 2.0 * jnp.dot(start[:3] - centre, n) * n, start[3:]]), start
+        )
+        x, k = _cauchy_fit(pos, rng, mask, x0, c, max_steps)
+        return x, (x, k)
+
+    _, (xs, ks) = jax.lax.scan(fit, jnp.concatenate([est, b0[None]]), jnp.array([False, True]))
+    x0, x1, k0, k1 = xs[0], xs[1], ks[0], ks[1]
     res0 = _dist(pos, x0[:3]) + x0[3] - rng
     res1 = _dist(pos, x1[:3]) + x1[3] - rng
     # + 1 nat^2 in the variance (`_vuong_z`): an exact mirror (a path in one plane) gives a difference and a
@@ -252,9 +261,36 @@ def _profile_one(
     return jax.vmap(at)(jnp.concatenate([jnp.linspace(-1.0, 1.0, n_grid) * inner, outer]))
 
 
+def anchor_bucket(k: int) -> int:
+    """The padded anchor count of the mirror check's programs for `k` anchors to check: the next power of two
+    (at least 1), so that calls with 5-8 anchors (nls and gp on one dataset check different subsets) share one
+    compiled program."""
+    return 1 << max(0, int(k) - 1).bit_length()
+
+
+def _map_valid(one, valid, arrays: tuple):
+    """`one(*row)` for every row of the batched `arrays` whose `valid` is set, one anchor after the other
+    (`lax.map`); zeros for the padding rows, which cost nothing (`lax.cond`).
+
+    Mapped, not vmapped: each anchor's Levenberg-Marquardt loops stop when its own fits do, while a vmapped batch
+    stepped every anchor until the slowest one of all stopped (profile fits took 8-20 steps: the batch paid 20)."""
+    shapes = jax.eval_shape(one, *(a[0] for a in arrays))
+
+    def row(args):
+        ok, rest = args[0], args[1:]
+        return jax.lax.cond(
+            ok, lambda r: one(*r), lambda r: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes), rest
+        )
+
+    return jax.lax.map(row, (valid, *arrays))
+
+
 @eqx.filter_jit
-def _compare_all(arrays: tuple, n_clusters: int, min_scale: float, max_steps: int, n_cells: int, cov_clusters: int = 4):
-    """`_compare_one` vmapped over anchors; `arrays` = (pos, rng, mask, est, cells), each batched."""
+def _compare_all(
+    arrays: tuple, valid, n_clusters: int, min_scale: float, max_steps: int, n_cells: int, cov_clusters: int = 4
+):
+    """`_compare_one` of every anchor with `valid` set (`_map_valid`); `arrays` = (pos, rng, mask, est, cells),
+    each batched (padded to `anchor_bucket` rows)."""
     one = functools.partial(
         _compare_one,
         n_clusters=n_clusters,
@@ -263,15 +299,21 @@ def _compare_all(arrays: tuple, n_clusters: int, min_scale: float, max_steps: in
         n_cells=n_cells,
         cov_clusters=cov_clusters,
     )
-    return jax.vmap(one)(*arrays)
+    return _map_valid(one, valid, arrays)
 
 
 @eqx.filter_jit
-def _profile_all(arrays: tuple, n_clusters: int, max_steps: int, n_grid: int, n_cells: int):
-    """`_profile_one` vmapped over anchors; `arrays` = (pos, rng, mask, x0, c, centre, n, sd_n, cells), each
-    batched."""
+def _profile_all(arrays: tuple, valid, n_clusters: int, max_steps: int, n_grid: int, n_cells: int):
+    """`_profile_one` of every anchor with `valid` set (`_map_valid`); `arrays` = (pos, rng, mask, x0, c, centre,
+    n, sd_n, cells), each batched (padded to `anchor_bucket` rows)."""
     one = functools.partial(_profile_one, n_clusters=n_clusters, max_steps=max_steps, n_grid=n_grid, n_cells=n_cells)
-    return jax.vmap(one)(*arrays)
+    return _map_valid(one, valid, arrays)
+
+
+def _padded(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(indices 0..n-1 padded with 0 to `anchor_bucket(n)`, (bucket,) bool: not padding), n >= 1."""
+    size = anchor_bucket(n)
+    return np.concatenate([np.arange(n), np.zeros(size - n, np.int64)]), np.arange(size) < n
 
 
 def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
@@ -313,10 +355,12 @@ def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
     rng = np.asarray(groups.range)
     cells, n_cells = route_cells(groups, p)
     cells = cells[todo]
+    pad, valid = _padded(todo.size)  # rows of `todo`, padded
     x0, x1, code, z, cov1, x0b, x1b, scale, centre, normal = (
-        np.array(v)
+        np.array(v)[: todo.size]
         for v in _compare_all(
-            tuple(jnp.asarray(v[todo]) for v in (pos, rng, mask, est)) + (jnp.asarray(cells),),
+            tuple(jnp.asarray(v[todo[pad]]) for v in (pos, rng, mask, est)) + (jnp.asarray(cells[pad]),),
+            jnp.asarray(valid),
             int(getattr(p, "n_clusters", 16)),
             float(getattr(p, "min_scale_m", 0.05)),
             200,
@@ -354,10 +398,13 @@ def _apply_profile(out: SideCheck, todo, planar, data, fit, p) -> None:
     x0b, scale, centre, normal = fit
     cov = out.covariance[todo]
     sd_n = np.sqrt(np.maximum(np.einsum("ai,aij,aj->a", normal, np.nan_to_num(cov), normal), 0.0))
+    pad, valid = _padded(len(todo))  # rows of `todo`, padded (`anchor_bucket`)
+    rows = (pos[todo], rng[todo], mask[todo], x0b, scale, centre, normal, sd_n, cells)
     pts, zk, codes = (
-        np.asarray(v)
+        np.asarray(v)[: len(todo)]
         for v in _profile_all(
-            tuple(jnp.asarray(v) for v in (pos[todo], rng[todo], mask[todo], x0b, scale, centre, normal, sd_n, cells)),
+            tuple(jnp.asarray(v[pad]) for v in rows),
+            jnp.asarray(valid),
             int(getattr(p, "n_clusters", 16)),
             100,
             int(p.mirror_profile),
