@@ -114,7 +114,21 @@ def line(label, method, rows):
         "pred_rmse_m": float(np.sqrt(np.mean([r["sd_m"] ** 2 for r in used]))) if used else float("nan"),
         "nan_axes": sum(r["nan_axes"] for r in rows),
         "worst": max(used, key=lambda r: r["nees"], default=None),
+        # the anchors with a fixed height apart from those whose height is NaN (their horizontal ellipse holds
+        # the fit at every height the ranges cannot tell apart: `jaxcal.trajectory.mirror`, step 5)
+        "fixed_nees_per_dof": _per_dof([r for r in used if r["nan_axes"] == 0]),
+        "nan_height_nees_per_dof": _per_dof([r for r in used if r["nan_axes"] > 0]),
     }
+
+
+def _per_dof(rows) -> float:
+    dof = sum(r["dof"] for r in rows)
+    return sum(r["nees"] for r in rows) / dof if dof else float("nan")
+
+
+def _nanmedian(values) -> float | None:
+    v = [x for x in values if np.isfinite(x)]
+    return float(np.median(v)) if v else None
 
 
 def _pooled(lines, key):
@@ -193,6 +207,8 @@ def main(argv=None) -> int:
                     "nees_dof_worst": float(np.max(nees)) if nees else None,
                     "outside95": sum(x["outside95"] for x in sims[m]),
                     "nan_heights": sum(x["nan_axes"] for x in sims[m]),
+                    "fixed_nees_dof_median": _nanmedian([x["fixed_nees_per_dof"] for x in sims[m]]),
+                    "nan_height_nees_dof_median": _nanmedian([x["nan_height_nees_per_dof"] for x in sims[m]]),
                     "coverage95_h": _pooled(sims[m], "inside_h"),
                     "coverage95_v": _pooled(sims[m], "inside_v"),
                     "mean_error_m": float(np.mean([x["mean_error_m"] for x in sims[m]])) if sims[m] else None,
