@@ -47,7 +47,13 @@ def main():
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--block", type=int, default=0)
     ap.add_argument("--model", default="subsample", help="gp model: subsample, path, space or excess")
-    ap.add_argument("--methods", nargs="*", default=["nls", "gp"], help="nls first, then gp (either may be left out)")
+    ap.add_argument(
+        "--methods",
+        nargs="+",
+        choices=("nls", "gp"),
+        default=["nls", "gp"],
+        help="nls first, then gp (either may be left out)",
+    )
     a = ap.parse_args()
     ds = simulate("campus", seed=a.seed, range_rate_hz=a.rate)
     base = {"dataset": f"campus seed={a.seed} rate={a.rate:g}", "ranges": int(ds.range.size)}
