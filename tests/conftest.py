@@ -17,6 +17,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
+from jaxcal import compile_cache
 from jaxcal.executables import release_if_crowded
 
 jax.config.update("jax_enable_x64", True)
@@ -75,10 +76,17 @@ def _release_executables_when_maps_run_high():
     release_if_crowded()
 
 
-# the command line's persistent compilation cache (`jaxcal.compile_cache`): one per test session,
-# not the user's, so the CLI subprocesses share their programs and a run leaves nothing behind
+# JAX's persistent compilation cache (`jaxcal.compile_cache`), one directory per test process (each xdist
+# worker its own: no two processes write one entry while another reads it), not the user's: a run leaves
+# nothing behind. The tests use it in-process too: many tests build the same programs afresh (closures jitted
+# per call, the same pipeline on the same shapes in several tests), and a program loaded from the cache is the
+# same executable, so the same numbers (docs/benchmarks/index.md, sixteenth round: 11 % less wall on five
+# test files, idle VM, same window). The in-process command line
+# (`cli.main`) and the CLI subprocesses (`run_cli`) read JAXCAL_CACHE_DIR and so use the same directory.
 _XLA_CACHE = tempfile.mkdtemp(prefix="jaxcal-test-xla-")
 atexit.register(shutil.rmtree, _XLA_CACHE, True)
+os.environ["JAXCAL_CACHE_DIR"] = _XLA_CACHE
+compile_cache.enable(_XLA_CACHE, min_compile_s=0.02)
 
 
 def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600, env: dict | None = None):
