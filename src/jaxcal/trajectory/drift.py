@@ -364,12 +364,12 @@ def drift_for_covariance(dataset, groups, est, bias, cov, p, method: str):
         bounded = (fit.bounded_upper_m, fit.bounded_corr_s)
         extra = pose_error_covariances(dataset, groups, est, none, method, bounded, seen_by)
         what = (
-            f"a bounded shared error of sd {fit.bounded_sd_m:.3g} m, at most {fit.bounded_upper_m:.3g} m within one "
-            f"sd, correlated over {fit.bounded_corr_s:.0f} s (a random-walk drift fits {fit.log_lr_bounded:+.1f} in "
+            f"a bounded shared error correlated over {fit.bounded_corr_s:.0f} s of sd {fit.bounded_sd_m:.3g} m "
+            f"(its upper bound within one sd, {fit.bounded_upper_m:.3g} m, is used; a random-walk drift fits "
             + (
-                f"log-likelihood, within {SELECT_MARGIN:g}), which is used"
+                f"{fit.log_lr_bounded:+.1f} in log-likelihood, within {SELECT_MARGIN:g})"
                 if chosen == "auto"
-                else "log-likelihood; drift_model=bounded), which is used"
+                else f"{fit.log_lr_bounded:+.1f} in log-likelihood; drift_model=bounded)"
             )
         )
     else:
@@ -377,8 +377,8 @@ def drift_for_covariance(dataset, groups, est, bias, cov, p, method: str):
             return p, info, None
         drift = eqx.tree_at(lambda r: r.pose_drift, none, fit.upper)
         extra = pose_error_covariances(dataset, groups, est, drift, method, seen_by=seen_by)
-        what = f"a drift of {fit.drift:.3g} m/sqrt(s), at most {fit.upper:.3g} within one sd, which is used" + (
-            "" if chosen == "auto" else " (drift_model=drift)"
+        what = f"a drift of {fit.drift:.3g} m/sqrt(s) (its upper bound within one sd, {fit.upper:.3g}, is used" + (
+            ")" if chosen == "auto" else "; drift_model=drift)"
         )
     base = np.trace(np.asarray(cov, float)[:, :2, :2], axis1=1, axis2=2)
     ok = np.isfinite(base) & (base > 0) & np.isfinite(est).all(axis=1)
