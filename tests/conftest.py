@@ -76,16 +76,49 @@ def _release_executables_when_maps_run_high():
     release_if_crowded()
 
 
-# JAX's persistent compilation cache (`jaxcal.compile_cache`), one directory per test process (each xdist
-# worker its own: no two processes write one entry while another reads it), not the user's: a run leaves
-# nothing behind. The tests use it in-process too: many tests build the same programs afresh (closures jitted
-# per call, the same pipeline on the same shapes in several tests), and a program loaded from the cache is the
-# same executable, so the same numbers (docs/benchmarks/index.md, sixteenth round: 11 % less wall on five
-# test files, idle VM, same window). The in-process command line
-# (`cli.main`) and the CLI subprocesses (`run_cli`) read JAXCAL_CACHE_DIR and so use the same directory.
-_XLA_CACHE = tempfile.mkdtemp(prefix="jaxcal-test-xla-")
-atexit.register(shutil.rmtree, _XLA_CACHE, True)
+# JAX's persistent compilation cache (`jaxcal.compile_cache`), one directory for the whole run, not the user's:
+# the run leaves nothing behind. The process that imports this first (pytest itself; with xdist, the controller)
+# makes the directory and deletes it at exit; its workers, the in-process command line (`cli.main`) and the CLI
+# subprocesses (`run_cli`) inherit JAXCAL_TEST_XLA_CACHE / JAXCAL_CACHE_DIR and share it. Many tests build the
+# same programs afresh (closures jitted per call, the same pipeline on the same shapes in several tests, a
+# file's tests split over both workers); a program loaded from the cache is the same executable, so the same
+# numbers (docs/benchmarks/index.md, sixteenth and seventeenth rounds). Entries are written atomically
+# (`_atomic_cache_writes`), so a worker never reads one that another is still writing.
+_XLA_CACHE_ENV = "JAXCAL_TEST_XLA_CACHE"
+if not os.environ.get(_XLA_CACHE_ENV):
+    os.environ[_XLA_CACHE_ENV] = tempfile.mkdtemp(prefix="jaxcal-test-xla-")
+    atexit.register(shutil.rmtree, os.environ[_XLA_CACHE_ENV], True)
+_XLA_CACHE = os.environ[_XLA_CACHE_ENV]
 os.environ["JAXCAL_CACHE_DIR"] = _XLA_CACHE
+
+
+def _atomic_cache_writes() -> None:
+    """JAX's cache (without its optional `filelock` size limit) writes an entry in place, so another process can
+    find the file before its last byte is there (JAX then warns and compiles again). Here an entry is written to
+    a temporary name and renamed: readers see all of it or nothing. Left alone where JAX's internals differ."""
+    try:
+        from jax._src import lru_cache
+    except ImportError:
+        return
+    cls, suffix = getattr(lru_cache, "LRUCache", None), getattr(lru_cache, "_CACHE_SUFFIX", None)
+    if cls is None or suffix is None or not hasattr(cls, "put"):
+        return
+    original = cls.put
+
+    def put(self, key: str, value: bytes) -> None:
+        if getattr(self, "eviction_enabled", True):  # the locked path is safe as it is
+            return original(self, key, value)
+        path = Path(self.path) / f"{key}{suffix}"
+        if not key or path.exists():
+            return original(self, key, value)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        tmp.write_bytes(value)
+        os.replace(tmp, path)
+
+    cls.put = put
+
+
+_atomic_cache_writes()
 compile_cache.enable(_XLA_CACHE, min_compile_s=0.02)
 
 
