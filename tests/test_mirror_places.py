@@ -99,3 +99,23 @@ def test_the_side_is_decided_by_the_fit_not_by_its_covariance(rng):
         b = mirror.compare_sides(groups, np.asarray(est), 30.0 * np.asarray(cov), p)
         assert (a.ambiguous == b.ambiguous).all() and (a.moved == b.moved).all()
         np.testing.assert_allclose(a.position, b.position)
+
+
+def test_the_place_clustered_z_cannot_reject_a_difference_that_one_cell_holds(rng):
+    """Why the profile (mirror step 4) widens a kept height over its whole span when few route cells hold the
+    evidence (docs/benchmarks/uncertainty.md, seventeenth round): a log-likelihood difference D that lies in one
+    cell has the cell sandwich variance G / (G - 1) (D^2 (1 - 1/G)^2 + (G - 1) D^2 / G^2) = D^2 exactly, so the
+    place-clustered z is at most D / sqrt(D^2 + 1) < 1 however large D is, while the same difference spread over
+    time stretches is significant."""
+    n, g = 600, 6
+    res0 = rng.normal(size=n) * 0.1
+    cells = rng.integers(0, g, n)  # each cell visited throughout the recording (every pass)
+    mask = np.ones(n, bool)
+    for shift in (0.1, 0.3, 1.0):
+        res = res0 + shift * (cells == 0)  # a misfit in one place only
+        z_time, z_place = (float(v) for v in mirror._vuong_z(res, res0, mask, 0.1, 16, cells, g))
+        diff = np.log1p((res / 0.1) ** 2) - np.log1p((res0 / 0.1) ** 2)
+        d = diff.sum()
+        assert d > 0 and 0 < z_place <= d / np.sqrt(d**2 + 1.0) * (1 + 1e-9) < 1
+        if shift >= 0.3:
+            assert z_time > nls.NLSParams().mirror_z
