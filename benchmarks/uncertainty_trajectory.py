@@ -184,7 +184,7 @@ def main(argv=None) -> int:
             ds = load()
             for m in methods:
                 print(json.dumps(dict(run(ds, m, None), dataset=label)), flush=True)
-    seeds = [s for part in args.sim_seeds.split(",") for s in _seed_range(part)]
+    seeds = [s for part in filter(None, args.sim_seeds.split(",")) for s in _seed_range(part)]  # "": none
     sims = {m: [] for m in methods}
     for seed in seeds:
         drift = {"drift": 0.02, "clean": 0.0}.get(args.family, 0.02 if seed % 2 else 0.0)
