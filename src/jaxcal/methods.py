@@ -83,9 +83,16 @@ def calibrate(
     `progress`: optional callback for the methods in `WITH_PROGRESS` (others ignore it), called with
     the epochs done since its last call. Runs with one BLAS thread (`jaxcal.blas_threads`): the fits
     factor small dense matrices thousands of times, where OpenBLAS's worker threads cost more than they
-    give (the command line also sets OPENBLAS_NUM_THREADS=1 unless the user has set it)."""
-    from jaxcal.blas_threads import one_blas_thread
+    give (the command line also sets OPENBLAS_NUM_THREADS=1 unless the user has set it).
 
+    A loop over many datasets of different shapes compiles new programs on every call, and each live
+    executable holds memory maps: first, JAX's caches are dropped when the process holds more than
+    `jaxcal.executables.MAPS_LIMIT` maps (`release_if_crowded`), so such a loop never reaches the
+    kernel's limit (a 20-campaign gp loop died at the 19th without this)."""
+    from jaxcal.blas_threads import one_blas_thread
+    from jaxcal.executables import release_if_crowded
+
+    release_if_crowded()
     return one_blas_thread(_calibrate)(dataset, method, params, config, progress)
 
 
