@@ -65,7 +65,10 @@ def test_offset_variance_enters_the_covariance(rng):
 
 def test_retry_of_the_unconverged_anchors_alone_matches_retrying_all(rng):
     """`nls.solve_all_checked` retries only the anchors that ran out of steps; the slow reference retries the
-    whole batch (`solver.retry_unconverged`). An anchor with exact ranges converges at once: a subset is retried."""
+    whole batch (`solver.retry_unconverged`). An anchor with exact ranges converges at once: a subset is retried.
+    The retry gets 50 steps, so that every fit converges: at a step limit where a fit only just converges, the
+    batch it runs in decides it (XLA sums a lane in another order; 14 of 20 seeds at 8 steps once the range
+    arrays were padded to 1024)."""
     ds = lissajous(n_anchor=3, noise=0.05, outliers=40, seed=int(rng.integers(1 << 30)), bias=0.2)
     p = nls.NLSParams(estimate_offset=False, max_steps=2)
     groups, _ = in_float64(nls.prepare_poses)(ds, p)
@@ -79,12 +82,12 @@ def test_retry_of_the_unconverged_anchors_alone_matches_retrying_all(rng):
 
     first = np.asarray(in_float64(full)(2)[1])
     assert first[-1] == S.CONVERGED and (first == S.MAX_STEPS).any(), first  # a strict subset is retried
-    (fast, codes, steps) = in_float64(nls.solve_all_checked)(groups, p)
-    (ref, ref_codes, ref_steps) = in_float64(S.retry_unconverged)(full, 2)
-    assert steps == ref_steps == 8
+    (fast, codes, steps) = in_float64(nls.solve_all_checked)(groups, p, factor=25)
+    (ref, ref_codes, ref_steps) = in_float64(S.retry_unconverged)(full, 2, factor=25)
+    assert steps == ref_steps == 50 and (np.asarray(codes) == S.CONVERGED).all()
     np.testing.assert_array_equal(codes, ref_codes)
-    for a, b in zip(fast, ref, strict=True):  # a converged fit may move by 1e-11 m when given more steps
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-9, equal_nan=True)
+    for a, b in zip(fast, ref, strict=True):  # converged fits in another batch: within 1e-8 m (20 seeds)
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-7, atol=1e-7, equal_nan=True)
 
 
 def test_thinned_start_fit_gives_the_offset_of_the_full_one(rng):

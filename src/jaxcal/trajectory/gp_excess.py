@@ -46,6 +46,7 @@ from jaxtyping import Array, Float
 
 from jaxcal import solver as S
 from jaxcal.data import Result
+from jaxcal.shapes import padded_length
 from jaxcal.trajectory.gp_kernel import Hyper, _cone, laplace_covariance
 
 __all__ = ["emg_logpdf", "ExcessModel", "excess_nll", "fit_excess_all", "thin_indices", "calibrate_excess"]
@@ -253,15 +254,17 @@ def fit_excess_all(
 
 
 def thin_indices(mask: np.ndarray, k: int) -> np.ndarray:
-    """(A, min(k, most valid ranges)) indices of at most `k` valid ranges per anchor, evenly spaced in time over
-    its valid ones (all of them where it has no more), -1 padding; k = 0: every valid range. Host-side NumPy.
+    """(A, min(k, L)) indices of at most `k` valid ranges per anchor, evenly spaced in time over its valid ones (all
+    of them where it has no more), -1 padding; k = 0: every valid range. L: the most valid ranges of an anchor,
+    padded (`jaxcal.shapes.padded_length`). Host-side NumPy.
 
     Ranges taken at tens of hertz repeat each other's errors (an NLOS state, a pose error persist for seconds), so
     evenly spaced ones keep the information of the route while the EM's cost falls with their number
     (docs/benchmarks/trajectory.md, fourteenth round: the accuracy against k)."""
     mask = np.asarray(mask, dtype=bool)
     counts = mask.sum(axis=1)
-    width = int(max(1, counts.max(initial=0) if k <= 0 else min(k, counts.max(initial=0))))
+    most = padded_length(int(max(1, counts.max(initial=0))))  # one shape for campaigns of similar size
+    width = most if k <= 0 else min(k, most)
     out = np.full((mask.shape[0], width), -1, dtype=np.int64)
     for a in range(mask.shape[0]):
         idx = np.flatnonzero(mask[a])

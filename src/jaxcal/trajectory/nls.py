@@ -34,6 +34,7 @@ from jaxcal.data import Result
 from jaxcal.errors import JaxcalError
 from jaxcal.params import with_overrides
 from jaxcal.precision import in_float64
+from jaxcal.shapes import padded_length
 from jaxcal.trajectory.common import TrajectoryParams, finish, multilaterate, report_fits, widen_covariance
 from jaxcal.trajectory.drift import MODELS, drift_for_covariance
 from jaxcal.trajectory.offset import summary
@@ -253,14 +254,22 @@ def route_cells(groups, p) -> tuple[np.ndarray, int]:
     """`cell_labels` of prepared `groups` with nls's cells: `p.cov_cell_m` [m] where > 0, else the box of each
     anchor's tag positions (x, y) cut into `p.cov_cells` cells along its longer side (square cells from the
     box's corner, the last row and column clipped to the box). Parameters without them (those of `ls` and
-    `gp`) get nls's defaults. Off (both 0): one cell, (A, n) zeros and padding 1."""
+    `gp`) get nls's defaults. Off (both 0): one cell, (A, n) zeros and padding 1. The count of cells is padded
+    (`jaxcal.shapes.padded_length`; empty cells count for nothing wherever cells are used) so that campaigns of
+    similar size share the compiled programs that take it as a static number."""
     side_m = float(getattr(p, "cov_cell_m", NLSParams.cov_cell_m))
     per_side = float(getattr(p, "cov_cells", NLSParams.cov_cells))
     pos, mask = np.asarray(groups.position), np.asarray(groups.mask)
+    if side_m <= 0 and per_side <= 0:
+        return np.where(mask, 0, 1).astype(np.int64), 1
+    labels, n_cells = _route_cells(pos, mask, side_m, per_side)
+    padded = padded_length(n_cells) if n_cells > 1 else n_cells
+    return np.where(labels == n_cells, padded, labels), padded
+
+
+def _route_cells(pos: np.ndarray, mask: np.ndarray, side_m: float, per_side: float) -> tuple[np.ndarray, int]:
     if side_m > 0:
         return cell_labels(pos, mask, side_m)
-    if per_side <= 0:
-        return np.where(mask, 0, 1).astype(np.int64), 1
     xy = np.where(mask[..., None], pos[..., :2], np.nan)
     with np.errstate(all="ignore"):
         lo, hi = np.nanmin(xy, axis=1), np.nanmax(xy, axis=1)

@@ -46,6 +46,8 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.stats import chi2
 
+from jaxcal.shapes import padded_length
+
 __all__ = ["OffsetFit", "estimate", "summary"]
 
 
@@ -317,7 +319,7 @@ def estimate(
         if idx.size > max_per_anchor:
             idx = idx[np.linspace(0, idx.size - 1, max_per_anchor).round().astype(int)]
         groups.append(idx)
-    n = max(1, max(g.size for g in groups))
+    n = padded_length(max(1, max(g.size for g in groups)))  # one shape for campaigns of similar size
     time = np.full((n_anchors, n), t_all[np.isfinite(t_all)].min() if t_all.size else 0.0)
     tag = np.zeros((n_anchors, n), dtype=np.asarray(range_tag).dtype)
     rr = np.zeros((n_anchors, n))
