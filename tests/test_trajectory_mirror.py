@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from jaxcal.trajectory import nls
+from jaxcal.trajectory import mirror, nls
 from trajectory_campaigns import one_anchor_dataset
 
 
@@ -92,8 +92,6 @@ def test_nan_height_horizontal_ellipse_holds_the_fit_at_every_height_near_the_pl
     from scipy.optimize import least_squares
     from scipy.stats import chi2
 
-    from jaxcal.trajectory import mirror
-
     calls = []
     envelope = mirror.height_envelope
     monkeypatch.setattr(mirror, "height_envelope", lambda d: calls.append(np.array(d)) or envelope(d))
@@ -140,8 +138,6 @@ def test_padded_mapped_side_check_equals_the_vmapped_one(rng):
     import jax
     import jax.numpy as jnp
 
-    from jaxcal.trajectory import mirror
-
     assert [mirror.anchor_bucket(k) for k in (1, 2, 3, 5, 8, 9)] == [1, 2, 4, 8, 8, 16]
     t = np.arange(0.0, 60.0, 0.1)
     pos = np.stack([6 * np.cos(0.2 * t), 5 * np.sin(0.4 * t), 0.9 * np.cos(0.2 * t)], 1)
@@ -163,3 +159,38 @@ def test_padded_mapped_side_check_equals_the_vmapped_one(rng):
     for g, r in zip(got, ref, strict=True):
         assert np.asarray(g).shape[0] == 4 and not np.asarray(g)[3].any()  # the padding row: skipped, zeros
         np.testing.assert_allclose(np.asarray(g)[:3], np.asarray(r), rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("u_plane", [0.0, -1e-12, 1e-12])
+def test_a_profile_fit_on_the_plane_counts_as_the_other_side_whatever_its_rounded_sign(monkeypatch, u_plane):
+    """Step 4's side rule: a plausible fit on the path's plane (z <= mirror_z, far from the estimate) leaves the
+    height NaN, as every fit just past the plane fits as well. The grid's point u = 0 comes out of the solver at
+    +-1e-12 or 0; its rounded sign decided the anchor's height on small clean seed 4 (twentieth round)."""
+    from types import SimpleNamespace
+
+    p = SimpleNamespace(mirror_z=2.0, mirror_profile=3, mirror_min_sep_m=0.3, side=1.0, n_clusters=16)
+    est = np.array([[0.0, 0.0, -0.9]])  # 0.9 m below the plane z = 0
+    pts = np.array([[[0.0, 0.0, -1.8], [0.1, 0.0, u_plane], [0.2, 0.0, 0.9]]])
+    zk = np.array([[[5.0, 5.0], [1.5, 1.5], [3.5, 3.5]]])  # only the fit on the plane is plausible
+    codes = np.zeros((1, 3), dtype=int)
+    monkeypatch.setattr(mirror, "_profile_all", lambda *a, **k: (pts, zk, codes))
+    out = mirror.SideCheck(
+        checked=np.zeros(1, bool),
+        ambiguous=np.zeros(1, bool),
+        moved=np.zeros(1, bool),
+        z=np.full(1, np.nan),
+        other=np.full((1, 3), np.nan),
+        position=est.copy(),
+        covariance=np.eye(3)[None] * 0.01,
+        widened=np.zeros(1, bool),
+    )
+    data = (np.zeros((1, 4, 3)), np.ones((1, 4)), np.ones((1, 4), bool), np.zeros((1, 4), int), 1)
+    fit = (np.zeros((1, 4)), np.ones(1), np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]))
+    mirror._apply_profile(out, np.array([0]), np.zeros(1, bool), data, fit, p)
+    assert out.ambiguous[0] and out.z[0] == 1.5
+    np.testing.assert_allclose(out.other[0], pts[0, 1])
+    # a plausible fit on the estimate's own side, short of the plane, decides nothing
+    pts[0, 1, 2] = -0.05
+    out.ambiguous[0] = False
+    mirror._apply_profile(out, np.array([0]), np.zeros(1, bool), data, fit, p)
+    assert not out.ambiguous[0]

@@ -121,6 +121,10 @@ def _dist(pos, a):
     return jnp.where(d2 > 0, jnp.sqrt(safe), 0.0)
 
 
+PLANE_TOL_M = 1e-6
+"""A profile fit this close to the path's plane [m] counts as on it (step 4's side rule)."""
+
+
 def _nll(r, c):
     """Cauchy negative log-likelihood of a residual (up to a constant) [nats]: log(1 + (r/c)^2)."""
     return jnp.log1p((r / c) ** 2)
@@ -432,7 +436,10 @@ def _apply_profile(out: SideCheck, todo, planar, data, fit, p) -> None:
         out.widened[a] |= bool(wide.any())
         # the side is decided on the inner grid alone (its span from the fit, not from the covariance)
         other = keep & (np.arange(keep.size) < int(p.mirror_profile))
-        other &= (np.sign(u_all) != np.sign(u_est)) & (np.abs(u_all - u_est) > p.mirror_min_sep_m)
+        # on the plane or beyond it: the fit on the plane (u = 0 on the grid) counts as the other side, as every fit
+        # just past the plane fits as well as it (the cost is smooth in u); by its rounded sign it counted for
+        # one side or the other, and with it the decision (small clean seed 4, A01; twentieth round)
+        other &= (u_all * np.sign(u_est) <= PLANE_TOL_M) & (np.abs(u_all - u_est) > p.mirror_min_sep_m)
         if other.any() and not out.ambiguous[a] and not planar[k]:
             out.ambiguous[a] = True
             best = np.flatnonzero(other)[np.argmin(z_side[other])]
