@@ -47,7 +47,7 @@ a third of the anchors, height errors of 2-5 m with predicted sd of 0.05-0.3 m).
    place could explain the difference (simulated seed 29: an anchor 0.6 m too high with 0.07 m predicted,
    whose true height's fit scored z = 3.6 over time stretches and 1.9 over route cells).
    A fit of the first `mirror_profile` (the span from the fit alone, so that a wider covariance cannot flip
-   the decision) with time-clustered z <= `mirror_z` on the other side of the plane, more than
+   the decision) with time-clustered z <= `mirror_z` on the other side of the plane (or on it), more than
    `mirror_min_sep_m` from the estimate, leaves the height NaN as in step 3. A
    planar path (`is_planar`: no side test) gets the profile on its conventional side (`side`) only.
 5. Where the height is left NaN (steps 3 or 4), the horizontal fit depends on the height the ranges cannot
