@@ -154,13 +154,13 @@ def group_by_anchor(
     max_per_anchor: int = 0,
     seed: int = 0,
     time: np.ndarray | None = None,
-    bucket: bool = True,
 ) -> AnchorRanges:
     """Group valid ranges per anchor into padded arrays (host side).
 
-    The arrays are padded (mask False) to `padded_length` of the largest anchor's count when `bucket` is set,
-    so that campaigns of similar size share one shape and a loop over them (a sweep, a family) reuses the
-    compiled programs instead of compiling every fit again; every consumer reads the mask.
+    The arrays are padded (mask False) to `padded_length` of the largest anchor's count (inside
+    `jaxcal.shapes.exact_lengths`: to that count), so that campaigns of similar size share one shape and a loop
+    over them (a sweep, a family) reuses the compiled programs instead of compiling every fit again; every
+    consumer reads the mask.
 
     Args:
         anchor: (R,) anchor index. position: (R, 3) tag positions [m] (NaN rows are dropped).
@@ -169,7 +169,6 @@ def group_by_anchor(
             (0 = all); used only to bound memory on very long recordings.
         seed: unused unless subsampling needs ties broken (kept for reproducibility).
         time: (R,) range times [s], kept per anchor in `AnchorRanges.time` (None: not kept).
-        bucket: pad to `padded_length` (False: to the largest count exactly).
     """
     anchor = np.asarray(anchor)
     position = np.asarray(position, dtype=float)
@@ -181,8 +180,7 @@ def group_by_anchor(
         if max_per_anchor and idx.size > max_per_anchor:
             idx = idx[np.linspace(0, idx.size - 1, max_per_anchor).round().astype(int)]
         groups.append(idx)
-    n = max(1, max(g.size for g in groups))
-    n = padded_length(n) if bucket else n
+    n = padded_length(max(1, max(g.size for g in groups)))
     pos = np.zeros((n_anchors, n, 3))
     r = np.zeros((n_anchors, n))
     m = np.zeros((n_anchors, n), dtype=bool)
