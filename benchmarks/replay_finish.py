@@ -92,8 +92,12 @@ def replay(args) -> int:
 
     overrides = {}
     for kv in args.set:
-        k, v = kv.split("=", 1)
-        overrides[k] = json.loads(v)
+        k, _, v = kv.partition("=")
+        try:
+            overrides[k] = json.loads(v)
+        except json.JSONDecodeError:
+            msg = f"replay_finish.py: --set {kv!r}: expected K=V with V in JSON (e.g. mirror_z=2.131)"
+            raise SystemExit(msg) from None
     seen = {}
     compare = mirror.compare_sides
 
@@ -109,6 +113,9 @@ def replay(args) -> int:
             a = pickle.load(fh)
         ds, est = a[0], a[4]
         if overrides:
+            unknown = set(overrides) - {f.name for f in dataclasses.fields(a[2])}
+            if unknown:
+                raise SystemExit(f"replay_finish.py: --set: {', '.join(sorted(unknown))} not a parameter of {a[1]}")
             a = (a[0], a[1], dataclasses.replace(a[2], **overrides), *a[3:])
         res = common.finish(*a)
         ln = line(f.stem, f.parent.name, anchor_figures(res, ds.anchor_truth))

@@ -73,7 +73,10 @@ def main(argv=None) -> int:
     ap.add_argument("--drift", type=float, default=0.02, help="pose drift of the odd seeds [m / sqrt(s)]")
     ap.add_argument("--child", nargs=2, metavar=("METHOD", "MODE"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
-    seeds = _seeds(args.seeds)
+    try:
+        seeds = _seeds(args.seeds)
+    except ValueError:
+        ap.error(f"--seeds {args.seeds!r}: expected e.g. 0-19 or 0,3,7")
     if args.child:
         child(*args.child, args.scenario, seeds, args.drift)
         return 0
