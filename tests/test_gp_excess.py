@@ -106,7 +106,8 @@ def test_newton_started_em_equals_the_identity_started_one(rng):
 
 
 def test_em_on_every_range_by_index_equals_the_em_without_indices(rng):
-    """`sub` listing every range (thin_indices with k = 0 or k above the count) is the fit on all of them."""
+    """`sub` listing every range (thin_indices with k = 0 or k above the count) is the fit on all of them, within
+    rounding (gathered, the sums run in another order: 1.9e-9 relative apart on the VM of 2026-11-29)."""
     args, _ = _zone_fit_args(rng)
     mask = np.asarray(args[2])
     full = gp_excess.fit_excess_all(*args, 256, 2, 5.0, 200)
@@ -114,7 +115,7 @@ def test_em_on_every_range_by_index_equals_the_em_without_indices(rng):
         sub = jnp.asarray(gp_excess.thin_indices(mask, k))
         got = gp_excess.fit_excess_all(*args, 256, 2, 5.0, 200, sub)
         for a, b in zip(got[:3], full[:3], strict=True):
-            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-7, atol=1e-10)
 
 
 def test_thin_indices_are_evenly_spaced_valid_ranges():

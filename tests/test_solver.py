@@ -112,9 +112,10 @@ def test_nls_reports_unconverged_anchor_fits(caplog):
     assert bad.params["solver_status"] == "max_steps" and bad.params["solver_failed"] == 3
     (line,) = warning_lines(caplog)
     assert line.startswith("nls: 3 of 3 anchor fits") and "retried with 4" in line
-    # 4 steps are too few for every anchor (all three hit max_steps first), the retry's 16 are enough (3 and
-    # its 12 were, before the clock offset's convergence test moved the offset the refit starts from)
-    retried = nls.calibrate(ds, {"max_steps": 4})
+    # a few steps, retried with 4x as many where short, are enough. Whether 4 (retried with 16) are depends on the
+    # CPU's rounding: enough on the VM of 2026-11-28, one anchor short on that of 2026-11-29 (6, 8, 12 converged
+    # there); 10 (retried with 40) leaves a margin
+    retried = nls.calibrate(ds, {"max_steps": 10})
     assert retried.params["solver_status"] == "converged"
     np.testing.assert_allclose(retried.position, ok.position, atol=1e-6)
 
