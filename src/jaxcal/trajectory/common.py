@@ -61,6 +61,9 @@ class TrajectoryParams(eqx.Module):
         mirror_profile: fits across the path's plane in the mirror-image check's profile (step 4 of
             `jaxcal.trajectory.mirror`: the covariance is widened to hold those that fit within mirror_z,
             and one of them on the other side leaves the height NaN); 0 or 1: no profile.
+        systematic: widen every anchor's covariance to the place-to-place part of its range errors taken as one
+            error (`jaxcal.trajectory.systematic`: an NLOS excess behind a building repeats on every range from
+            there and does not average out); False: the methods' covariances as they are.
         pose_sd_m, pose_drift: a stated horizontal pose error (`jaxcal.trajectory.pose_error`): the standard
             deviation [m] per axis of an offset shared by the whole path (frame, lever arm) and the intensity
             [m / sqrt(s)] of a random-walk drift from the first pose (odometry). The ranges cannot show an
@@ -79,6 +82,7 @@ class TrajectoryParams(eqx.Module):
     mirror_z: float = 2.0
     mirror_min_sep_m: float = 0.25
     mirror_profile: int = 17
+    systematic: bool = True
     pose_sd_m: float = 0.0
     pose_drift: float = 0.0
     order: int = 4
@@ -255,11 +259,13 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None, pose_cov_ext
     height (the rest kept, one warning line) for anchors whose height the path cannot observe
     (`unobservable_height`) and for anchors the ranges cannot tell from their mirror image through the
     path (`jaxcal.trajectory.mirror.compare_sides`, which also moves an anchor to the other side where that
-    fits clearly better). A stated pose error (`pose_sd_m`, `pose_drift`) is added to every covariance
-    first (`jaxcal.trajectory.pose_error`). `solver` (a `jaxcal.solver.SolverReport`) adds `solver_status` and
-    `solver_failed` to the params. `pose_cov_extra` ((A, 3, 3) or None): a further pose error covariance, added
-    with the stated one (the shared error `nls` estimates, `jaxcal.trajectory.drift`: the part its jackknife cannot
-    see; `gp` adds the same)."""
+    fits clearly better). With `p.systematic` every covariance is first widened to the place-to-place part of the
+    range errors taken as one error (`jaxcal.trajectory.systematic`). A stated pose error (`pose_sd_m`,
+    `pose_drift`) is added to every covariance then (`jaxcal.trajectory.pose_error`). `solver` (a
+    `jaxcal.solver.SolverReport`) adds `solver_status` and `solver_failed` to the params. `pose_cov_extra`
+    ((A, 3, 3) or None): a further pose error covariance, added with the stated one (the shared error `nls`
+    estimates, `jaxcal.trajectory.drift`: the part its jackknife cannot see; `gp` adds
+    the same)."""
     from jaxcal import __version__
 
     est = np.array(est, dtype=float)
@@ -269,12 +275,18 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None, pose_cov_ext
     bad = (count < p.min_ranges) | ~np.isfinite(est).all(axis=1) | ~np.isfinite(cov).all(axis=(1, 2))
     est[bad] = np.nan
     cov[bad] = np.nan
+    flat, zstd = unobservable_height(groups, est, p)
+    if p.systematic:
+        from jaxcal.trajectory.systematic import systematic_covariances
+
+        floor = systematic_covariances(groups, est, flat)
+        for a in np.flatnonzero(np.isfinite(cov).all(axis=(1, 2))):
+            cov[a] = widen_covariance(cov[a], floor[a])
     pose_cov = pose_error_covariances(dataset, groups, est, p, method) + offset_covariances(info, est.shape[0])
     if pose_cov_extra is not None:
         pose_cov = pose_cov + np.where(np.isfinite(est).all(axis=1)[:, None, None], pose_cov_extra, 0.0)
     info = {k: v for k, v in info.items() if k != "offset_sensitivity"}
     cov = cov + pose_cov
-    flat, zstd = unobservable_height(groups, est, p)
     if flat.any():
         est[flat, 2] = np.nan
         cov[flat, 2, :] = np.nan
@@ -293,7 +305,11 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None, pose_cov_ext
 
     sides = compare_sides(groups, est, cov, p)
     est, cov = sides.position, sides.covariance
-    cov[sides.moved] += pose_cov[sides.moved]  # the other side's covariance is the fit's alone
+    if p.systematic and sides.moved.any():  # the other side's covariance is the fit's alone
+        floor = systematic_covariances(groups, np.where(sides.moved[:, None], est, np.nan))
+        for a in np.flatnonzero(sides.moved):
+            cov[a] = widen_covariance(cov[a], floor[a])
+    cov[sides.moved] += pose_cov[sides.moved]
     ids = dataset.anchor_ids
     if sides.ambiguous.any():
         amb = np.flatnonzero(sides.ambiguous)
