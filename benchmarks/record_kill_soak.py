@@ -6,8 +6,9 @@ Each kill: a fresh recorder process; the simulated module sends items until a ra
 random part (possibly none) is written, waits a random fraction of a period, and SIGKILLs the recorder.
 The journal is replayed and compared with the items the recorder had read completely (bytes written
 minus those still unread in the pty). A kill passes when the journal is a prefix of the items sent and
-holds all the completely read items but at most one (the frame being decoded), and the --raw-out capture
-is a prefix of the stream holding every byte read but at most the read in flight. One JSON line per kill,
+holds all the completely read items but those of the read in flight (one item while the recorder keeps up;
+on a starved machine a read can hold several, and the device measures the largest), and the --raw-out
+capture is a prefix of the stream holding every byte read but at most the read in flight. One JSON line per kill,
 then one summary line per protocol and one overall. Where the kill left an HDF5 snapshot, it must be a
 complete contract file whose frames are a prefix of the journal.
 
@@ -29,7 +30,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from ptydev import kill_run  # noqa: E402
+from ptydev import kill_ok, kill_run  # noqa: E402
 
 RATE = {"nlink": 100, "dwm1001-tlv": 20, "dwm1001-shell": 20}  # items per second (tests/ptydev.py)
 
@@ -51,6 +52,8 @@ def _one(tmp: Path, protocol: str, seed: int, n: int) -> dict:
             "read_bytes": 0,
             "raw_bytes": 0,
             "max_item": 0,
+            "max_read_items": 0,
+            "max_read_bytes": 0,
             "error": str(e),
         }
 
@@ -87,11 +90,7 @@ def main() -> int:
     }
     per: dict[str, dict] = {}
     for r in runs:
-        ok = (
-            r["prefix"]
-            and r["read_complete"] - 1 <= r["recovered"] <= r["read_complete"]
-            and r["read_bytes"] - r["max_item"] <= r["raw_bytes"] <= r["read_bytes"]
-        )
+        ok = "error" not in r and kill_ok(r)
         row = {
             k: r.get(k)
             for k in (
@@ -105,6 +104,7 @@ def main() -> int:
                 "snapshot_frames",
                 "read_bytes",
                 "raw_bytes",
+                "max_read_items",
             )
         }
         row["ok"] = bool(ok)

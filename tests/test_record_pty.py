@@ -1,6 +1,6 @@
 """`jaxcal record --port` end to end on pseudo-terminals, as a user's device would be used (pyserial opens
-the pty; tests/ptydev.py plays the module): SIGKILL at random moments loses at most the frame being
-decoded, for NLink, DWM1001 TLV (the test answers the requests) and the DWM1001 shell (`--init`: the test
+the pty; tests/ptydev.py plays the module): SIGKILL at random moments loses at most the read in
+flight (the frame being decoded while the recorder keeps up), for NLink, DWM1001 TLV (the test answers the requests) and the DWM1001 shell (`--init`: the test
 answers `lec`); a killed recording is refused, not overwritten, and recovered by one command; the faults
 of a real link (wrong baud, silence, a 10x burst, unplug and replug at the same path, a device that never
 comes back) are reported in one line each and lose no frame; Ctrl-C ends with 130 and a complete file.
@@ -24,6 +24,7 @@ from conftest import assert_one_line_error, run_cli
 from jaxcal.io import hdf5
 from ptydev import (
     Device,
+    kill_ok,
     kill_run,
     lec_lines,
     nlink_frames,
@@ -46,22 +47,17 @@ def _h5_frames(path) -> list[bytes]:
     return [data[off[i] : off[i + 1]] for i in range(off.size - 1)]
 
 
-def test_sigkill_at_20_random_moments_loses_at_most_the_frame_being_decoded(tmp_path):
+def test_sigkill_at_20_random_moments_loses_at_most_the_read_in_flight(tmp_path):
     with ThreadPoolExecutor(4) as pool:  # the recorders mostly wait on the pty: run four at a time
         runs = list(pool.map(lambda a: kill_run(tmp_path, a[1][0], a[0], a[1][1]), enumerate(KILLS)))
     lines = []
     for r in runs:
-        # the journal replays to a prefix of what was sent, and holds every frame the recorder had read
-        # completely before the kill but at most the one it was decoding
-        assert r["prefix"], r
-        assert r["read_complete"] - 1 <= r["recovered"] <= r["read_complete"] <= r["sent"], r
-        # --raw-out holds every byte read (a prefix of the stream, checked in kill_run) but at most the
-        # read in flight (at most one item at the nominal rate)
-        assert r["read_bytes"] - r["max_item"] <= r["raw_bytes"] <= r["read_bytes"], r
+        assert kill_ok(r), r  # at most the read in flight lost, from the journal and from --raw-out
         assert r["stderr"] == "", r  # --quiet: nothing before the kill
         lines.append(
             f"{r['protocol']:>14} seed {r['seed']:2d}: sent {r['sent']:3d}, read {r['read_complete']:3d}, "
-            f"recovered {r['recovered']:3d}{' (snapshot existed)' if r['snapshot_at_kill'] else ''}"
+            f"recovered {r['recovered']:3d}, largest read {r['max_read_items']} items"
+            f"{' (snapshot existed)' if r['snapshot_at_kill'] else ''}"
         )
     print("\n" + "\n".join(lines))
     by = {}
