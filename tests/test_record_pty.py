@@ -1,9 +1,10 @@
 """`jaxcal record --port` end to end on pseudo-terminals, as a user's device would be used (pyserial opens
-the pty; tests/ptydev.py plays the module): SIGKILL at random moments loses at most the read in
-flight (the frame being decoded while the recorder keeps up), for NLink, DWM1001 TLV (the test answers the requests) and the DWM1001 shell (`--init`: the test
-answers `lec`); a killed recording is refused, not overwritten, and recovered by one command; the faults
-of a real link (wrong baud, silence, a 10x burst, unplug and replug at the same path, a device that never
-comes back) are reported in one line each and lose no frame; Ctrl-C ends with 130 and a complete file.
+the pty; tests/ptydev.py plays the module): SIGKILL at random moments loses at most the read in flight
+(the frame being decoded while the recorder keeps up), for NLink, DWM1001 TLV (the test answers the
+requests) and the DWM1001 shell (`--init`: the test answers `lec`); a killed recording is refused, not
+overwritten, and recovered by one command; the faults of a real link (wrong baud, silence, a 10x burst,
+unplug and replug at the same path, a device that never comes back) are reported in one line each and
+lose no frame; Ctrl-C ends with 130 and a complete file.
 
 The longer soak (hundreds of kills) is benchmarks/record_kill_soak.py."""
 
