@@ -368,4 +368,3 @@ def kill_ok(r: dict) -> bool:
         and r["read_complete"] <= r["sent"]
         and r["read_bytes"] - r["max_read_bytes"] <= r["raw_bytes"] <= r["read_bytes"]
     )
-
