@@ -43,7 +43,7 @@ def test_mirror_ambiguous_height_is_nan_with_one_warning_line(seed, caplog):
     assert np.sqrt(np.linalg.eigvalsh(res.covariance[0, :2, :2]).max()) > 0.2
     assert res.params["info_mirror_ambiguous"] == ["a0"] and res.params["info_unobservable_height"] == []
     lines = [r.getMessage() for r in caplog.records if "mirror" in r.getMessage()]
-    assert len(lines) == 1 and "(a0)" in lines[0] and "\n" not in lines[0]
+    assert len(lines) == 1 and "(a0 z)" in lines[0] and "\n" not in lines[0]
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -183,14 +183,16 @@ def test_a_profile_fit_on_the_plane_counts_as_the_other_side_whatever_its_rounde
         position=est.copy(),
         covariance=np.eye(3)[None] * 0.01,
         widened=np.zeros(1, bool),
+        unknown=np.zeros((1, 3), bool),
+        restarted=np.zeros(1, bool),
     )
     data = (np.zeros((1, 4, 3)), np.ones((1, 4)), np.ones((1, 4), bool), np.zeros((1, 4), int), 1)
     fit = (np.zeros((1, 4)), np.ones(1), np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]))
-    mirror._apply_profile(out, np.array([0]), np.zeros(1, bool), data, fit, p)
+    mirror._apply_profile(out, np.array([0]), (np.zeros(1, bool), np.zeros(1, bool)), data, fit, p)
     assert out.ambiguous[0] and out.z[0] == 1.5
     np.testing.assert_allclose(out.other[0], pts[0, 1])
     # a plausible fit on the estimate's own side, short of the plane, decides nothing
     pts[0, 1, 2] = -0.05
     out.ambiguous[0] = False
-    mirror._apply_profile(out, np.array([0]), np.zeros(1, bool), data, fit, p)
+    mirror._apply_profile(out, np.array([0]), (np.zeros(1, bool), np.zeros(1, bool)), data, fit, p)
     assert not out.ambiguous[0]

@@ -212,6 +212,11 @@ def unobservable_height(groups, est: np.ndarray, p) -> tuple[np.ndarray, np.ndar
     return out, zstd
 
 
+def _axes(unknown) -> str:
+    """'x/y' for an (3,) bool of coordinates."""
+    return "/".join(n for n, u in zip("xyz", unknown, strict=True) if u)
+
+
 def widen_covariance(cov: np.ndarray, floor: np.ndarray) -> np.ndarray:
     """(3, 3) covariance `cov` raised, in every direction where it is smaller, to `floor`."""
     cov = 0.5 * (cov + cov.T)
@@ -275,7 +280,11 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None, pose_cov_ext
     bad = (count < p.min_ranges) | ~np.isfinite(est).all(axis=1) | ~np.isfinite(cov).all(axis=(1, 2))
     est[bad] = np.nan
     cov[bad] = np.nan
+    from jaxcal.trajectory.path_shape import line_anchors, shapes
+
+    shape = shapes(groups, p)
     flat, zstd = unobservable_height(groups, est, p)
+    flat &= ~(shape.line | shape.steep)  # their heights: the line fit and the side check (`path_shape`)
     if p.systematic:
         from jaxcal.trajectory.systematic import systematic_covariances
 
@@ -303,29 +312,48 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None, pose_cov_ext
         )
     from jaxcal.trajectory.mirror import compare_sides
 
-    sides = compare_sides(groups, est, cov, p)
+    sides = compare_sides(groups, est, cov, p, shape)
     est, cov = sides.position, sides.covariance
-    if p.systematic and sides.moved.any():  # the other side's covariance is the fit's alone
-        floor = systematic_covariances(groups, np.where(sides.moved[:, None], est, np.nan))
-        for a in np.flatnonzero(sides.moved):
+    refit = sides.moved | sides.restarted  # the covariance of a fit the check made is the fit's alone
+    if p.systematic and refit.any():
+        floor = systematic_covariances(groups, np.where(refit[:, None], est, np.nan))
+        for a in np.flatnonzero(refit):
             cov[a] = widen_covariance(cov[a], floor[a])
-    cov[sides.moved] += pose_cov[sides.moved]
+    cov[refit] += pose_cov[refit]
     ids = dataset.anchor_ids
     if sides.ambiguous.any():
         amb = np.flatnonzero(sides.ambiguous)
-        apart = np.abs(sides.other[amb, 2] - est[amb, 2])
-        est[amb, 2] = np.nan
-        cov[amb, 2, :] = np.nan
-        cov[amb, :, 2] = np.nan
+        apart = np.linalg.norm(sides.other[amb] - est[amb], axis=1)
+        unknown = sides.unknown[amb]
+        for a, u in zip(amb, unknown, strict=True):
+            est[a, u] = np.nan
+            cov[a, u, :] = np.nan
+            cov[a, :, u] = np.nan
         logging.getLogger("jaxcal").warning(
             "%s: the ranges cannot tell %d anchor(s) (%s) from their mirror image through the path "
-            "(both sides fit alike: |z| <= %g, height %s m apart); left NaN, horizontal kept and widened "
-            "to both sides; survey the heights or record a path that climbs near them",
+            "(both sides fit alike: |z| <= %g, %s m apart); left NaN, the rest kept and widened "
+            "to both sides; survey them or record a path that climbs and turns near them",
             method,
             amb.size,
-            ", ".join(ids[a] for a in amb[:8]) + (", ..." if amb.size > 8 else ""),
+            ", ".join(f"{ids[a]} {_axes(u)}" for a, u in zip(amb[:8], unknown[:8], strict=True))
+            + (", ..." if amb.size > 8 else ""),
             p.mirror_z,
             "/".join(f"{v:.1f}" for v in apart[:8]),
+        )
+    lines = line_anchors(groups, est, cov, shape, pose_cov, p)
+    if lines:
+        logging.getLogger("jaxcal").warning(
+            "%s: the path is a straight line (within planar_tol_m = %g m) for %d anchor(s) (%s): the ranges fix "
+            "only the position along it and the distance from it, not where on the circle about it; left NaN, "
+            "what the circle does not move kept; survey them or record a path that turns near them",
+            method,
+            p.planar_tol_m,
+            len(lines),
+            ", ".join(
+                f"{ids[a]} {_axes(~np.isfinite(est[a]))} ({v['from_line_m']:.1f} m from the line)"
+                for a, v in list(lines.items())[:8]
+            )
+            + (", ..." if len(lines) > 8 else ""),
         )
     info = dict(
         info,
@@ -334,6 +362,10 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None, pose_cov_ext
         mirror_moved=[ids[a] for a in np.flatnonzero(sides.moved)],
         mirror_widened=[ids[a] for a in np.flatnonzero(sides.widened)],
         mirror_z={ids[a]: round(float(sides.z[a]), 3) for a in np.flatnonzero(sides.checked)},
+        mirror_unknown={ids[a]: _axes(sides.unknown[a]) for a in np.flatnonzero(sides.ambiguous)},
+        mirror_restarted=[ids[a] for a in np.flatnonzero(sides.restarted)],
+        path_steep=[ids[a] for a in np.flatnonzero(shape.steep)],
+        path_line={ids[a]: v for a, v in lines.items()},
     )
     params = as_dict(p)
     params.update({f"info_{k}": v for k, v in info.items()})

@@ -62,6 +62,10 @@ a third of the anchors, height errors of 2-5 m with predicted sd of 0.05-0.3 m).
    NaN heights, 0.56-0.92 m off for 0.22-0.45 m predicted, whose true height's profile fit scored z = 2.2-3.4
    (above `mirror_z`, so step 4 did not count it); with step 5 all five are inside.
 
+A straight path (`jaxcal.trajectory.path_shape`): a line is not checked here (`finish` fits it); a steep plane (a
+straight road over hills) is checked whatever `is_planar` says, from a start off the plane where the estimate lies in
+it, and where the sides fit alike the coordinates they differ in (not the height) are NaN (`SideCheck.unknown`).
+
 Imports `nls` (for its covariance); `common.finish` imports this module inside the function.
 """
 
@@ -79,6 +83,7 @@ import optimistix as optx
 from jaxcal import solver as S
 from jaxcal.trajectory.common import is_planar, widen_covariance
 from jaxcal.trajectory.nls import irls_covariance, robust_covariance, route_cells
+from jaxcal.trajectory.path_shape import steep_starts
 
 __all__ = ["SideCheck", "local_plane", "compare_sides"]
 
@@ -94,6 +99,11 @@ class SideCheck(NamedTuple):
         other: (A, 3) the optimum on the other side [m] (the replaced estimate where `moved`).
         position: (A, 3), covariance: (A, 3, 3): the estimates after the check (heights not yet NaN).
         widened: (A,) the profile across the plane (step 4) widened the covariance.
+        unknown: (A, 3) the coordinates the two sides do not agree on, left NaN by `finish` where `ambiguous`: the
+            height across a nearly horizontal path; across a steep one (`path_shape`) those that differ by at
+            least half the distance between the two sides.
+        restarted: (A,) a steep path's anchor fitted in its plane (a saddle of the symmetric cost) was refitted
+            from `path_shape.plane_start`: position and covariance are that fit's (as for `moved`).
     """
 
     checked: np.ndarray
@@ -104,10 +114,15 @@ class SideCheck(NamedTuple):
     position: np.ndarray
     covariance: np.ndarray
     widened: np.ndarray
+    unknown: np.ndarray
+    restarted: np.ndarray
 
 
 CHI2_2_95 = 5.991464547107979
 """The 95 % quantile of chi-square with 2 degrees of freedom (a horizontal ellipse)."""
+
+CHI2_95 = {1: 3.841458820694124, 2: CHI2_2_95, 3: 7.814727903251178}
+"""The 95 % quantiles of chi-square with 1-3 degrees of freedom."""
 
 PROFILE_TOL = 1e-6
 """Relative and absolute step tolerance of the profile fits (step 4): about 10 float32 ulps of a coordinate of
@@ -189,14 +204,19 @@ def _compare_one(
     # variance of rounding size, whose ratio means nothing; a difference below a few nats is no evidence.
     z = _vuong_z(res1, res0, mask, c, n_clusters, cells, n_cells)
     z = jnp.stack(z)
-    # nls's covariance at the other optimum (used where it replaces the estimate).
-    w1 = jnp.where(mask, 1.0 / (1.0 + (res1 / c) ** 2), 0.0)
-    sw1 = jnp.sqrt(w1)
-    jac = jax.jacfwd(lambda x: sw1 * (_dist(pos, x[:3]) + x[3] - rng))(x1)
-    cov1 = irls_covariance(jac, sw1 * res1, w1, mask, (cov_clusters, n_clusters))
-    if n_cells > 1:  # and over route cells, as nls's reported covariance (`nls.cell_covariances`)
-        cov1 = robust_covariance(cov1, jac, sw1 * res1, mask, n_cells, cells)
-    return x0[:3], x1[:3], jnp.maximum(k0, k1), z, cov1[:3, :3], x0, x1, c, centre, n
+
+    # nls's covariance at each optimum (used where one replaces the estimate).
+    def covariance(x, res):
+        w = jnp.where(mask, 1.0 / (1.0 + (res / c) ** 2), 0.0)
+        sw = jnp.sqrt(w)
+        jac = jax.jacfwd(lambda y: sw * (_dist(pos, y[:3]) + y[3] - rng))(x)
+        cv = irls_covariance(jac, sw * res, w, mask, (cov_clusters, n_clusters))
+        if n_cells > 1:  # and over route cells, as nls's reported covariance (`nls.cell_covariances`)
+            cv = robust_covariance(cv, jac, sw * res, mask, n_cells, cells)
+        return cv[:3, :3]
+
+    covs = jnp.stack([covariance(x0, res0), covariance(x1, res1)])
+    return x0[:3], x1[:3], jnp.maximum(k0, k1), z, covs, x0, x1, c, centre, n
 
 
 def _vuong_z(res, res0, mask, c, n_clusters: int, cells=None, n_cells: int = 0):
@@ -320,7 +340,7 @@ def _padded(n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate([np.arange(n), np.zeros(size - n, np.int64)]), np.arange(size) < n
 
 
-def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
+def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p, shape=None) -> SideCheck:
     """The mirror-image check of the anchors with a finite estimate (see the module docstring).
 
     Args:
@@ -329,6 +349,9 @@ def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
             positions are planar (`is_planar`): their side is the convention `p.side`). cov: (A, 3, 3) [m^2].
         p: TrajectoryParams (`mirror_z`, `mirror_min_sep_m`, `min_ranges`; `n_clusters` and `min_scale_m`
             where the method has them, else 16 and 0.05 m).
+        shape: `jaxcal.trajectory.path_shape.PathShape` or None. Its `line` anchors are not checked (`finish`
+            fits them); its `steep` ones are checked whatever `is_planar` says (no convention picks their side),
+            from `path_shape.plane_start` where the estimate lies in the plane.
 
     Returns:
         SideCheck. A fit that did not converge counts as no alternative (nothing is changed).
@@ -343,6 +366,8 @@ def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
         position=np.array(est, dtype=float),
         covariance=np.array(cov, dtype=float),
         widened=np.zeros(a_n, bool),
+        unknown=np.zeros((a_n, 3), bool),
+        restarted=np.zeros(a_n, bool),
     )
     mask = np.asarray(groups.mask)
     pos = np.asarray(groups.position)
@@ -353,17 +378,21 @@ def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
             hstd = float(np.sqrt(np.mean(np.sum((q[:, :2] - q[:, :2].mean(axis=0)) ** 2, axis=1))))
             planar[a] = bool(is_planar(float(np.std(q[:, 2])), hstd, p.planar_tol_m, p.planar_ratio))
     # planar paths: no side test (the side is `p.side`), but the profile (on that side) sizes the covariance
-    todo = np.flatnonzero(np.isfinite(est).all(axis=1) & (mask.sum(axis=1) >= max(p.min_ranges, 4)))
+    line = np.zeros(a_n, bool) if shape is None else shape.line
+    steep = np.zeros(a_n, bool) if shape is None else shape.steep
+    planar &= ~steep
+    todo = np.flatnonzero(np.isfinite(est).all(axis=1) & (mask.sum(axis=1) >= max(p.min_ranges, 4)) & ~line)
     if p.mirror_z <= 0 or todo.size == 0:
         return out
     rng = np.asarray(groups.range)
+    start, out.restarted[:] = steep_starts(est, steep, todo, (pos, rng, mask), shape)
     cells, n_cells = route_cells(groups, p)
     cells = cells[todo]
     pad, valid = _padded(todo.size)  # rows of `todo`, padded
-    x0, x1, code, z, cov1, x0b, x1b, scale, centre, normal = (
+    x0, x1, code, z, covs, x0b, x1b, scale, centre, normal = (
         np.array(v)[: todo.size]
         for v in _compare_all(
-            tuple(jnp.asarray(v[todo[pad]]) for v in (pos, rng, mask, est)) + (jnp.asarray(cells[pad]),),
+            tuple(jnp.asarray(v[todo[pad]]) for v in (pos, rng, mask, start)) + (jnp.asarray(cells[pad]),),
             jnp.asarray(valid),
             int(getattr(p, "n_clusters", 16)),
             float(getattr(p, "min_scale_m", 0.05)),
@@ -375,29 +404,56 @@ def compare_sides(groups, est: np.ndarray, cov: np.ndarray, p) -> SideCheck:
     z = z[:, 0]  # the side: z over time stretches (module doc, step 2)
     distinct = (code == S.CONVERGED) & (np.linalg.norm(x1 - x0, axis=1) > p.mirror_min_sep_m) & np.isfinite(z)
     for k, a in enumerate(todo.tolist()):
+        if out.restarted[a]:  # the estimate lay in a steep plane: the fit from off the plane replaces it
+            if code[k] != S.CONVERGED:
+                out.restarted[a] = False
+            else:
+                out.position[a], out.covariance[a] = x0[k], 0.5 * (covs[k, 0] + covs[k, 0].T)
         if not distinct[k] or planar[a]:
             continue
         out.checked[a], out.z[a], out.other[a] = True, z[k], x1[k]
         if z[k] < -p.mirror_z:
             out.moved[a] = True
-            out.other[a] = est[a]
+            out.other[a] = out.position[a]
             out.position[a] = x1[k]
-            out.covariance[a] = 0.5 * (cov1[k] + cov1[k].T)
+            out.covariance[a] = 0.5 * (covs[k, 1] + covs[k, 1].T)
             x0b[k] = x1b[k]  # the profile (step 4) is taken about the fit that replaced the estimate
         elif z[k] <= p.mirror_z:
-            out.ambiguous[a] = True
-            dh = x1[k, :2] - est[a, :2]
-            out.covariance[a, :2, :2] += 0.5 * np.outer(dh, dh)
+            _ambiguous(out, a, x1[k], steep[a])
     if p.mirror_profile > 1:
-        _apply_profile(out, todo, planar[todo], (pos, rng, mask, cells, n_cells), (x0b, scale, centre, normal), p)
+        data = (pos, rng, mask, cells, n_cells)
+        _apply_profile(out, todo, (planar[todo], steep[todo]), data, (x0b, scale, centre, normal), p)
     return out
 
 
-def _apply_profile(out: SideCheck, todo, planar, data, fit, p) -> None:
+def _ambiguous(out: SideCheck, a: int, other: np.ndarray, steep: bool) -> None:
+    """Mark anchor `a` ambiguous against the fit `other` on the other side: the coordinates the sides do not agree
+    on are `unknown` (the height; across a steep path those that differ by at least half the distance between
+    them) and the rest of the covariance is widened to hold both sides (+ d d^T / 2)."""
+    out.ambiguous[a] = True
+    d = np.asarray(other, float) - out.position[a]
+    out.unknown[a] = _unknown(d, steep)
+    k = np.flatnonzero(~out.unknown[a])
+    out.covariance[a][np.ix_(k, k)] += 0.5 * np.outer(d[k], d[k])
+
+
+def _unknown(d: np.ndarray, steep: bool) -> np.ndarray:
+    """(3,) bool: the coordinates two fits `d` (3,) apart across the path do not agree on: the height across a nearly
+    horizontal path; across a steep one those that differ by at least half the distance (at least one)."""
+    if not steep:
+        return np.array([False, False, True])
+    out = np.abs(d) >= 0.5 * np.linalg.norm(d)
+    out[np.argmax(np.abs(d))] = True
+    return out
+
+
+def _apply_profile(out: SideCheck, todo, kind, data, fit, p) -> None:
     """Step 4 (module doc), in place on `out`: the profile across the plane of every anchor in `todo` that was
     not moved; the profile fits within `mirror_z` widen the covariance, and one on the other side of the
-    plane, more than `mirror_min_sep_m` from the estimate, leaves the height NaN (`ambiguous`). A planar
-    path (`planar`, (len(todo),)) has its side by convention (`p.side`): only that side's fits count."""
+    plane, more than `mirror_min_sep_m` from the estimate, leaves the height NaN (`ambiguous`; across a steep
+    path the coordinates `_unknown` names). `kind` = (planar, steep), each (len(todo),): a planar path has its
+    side by convention (`p.side`): only that side's fits count."""
+    planar, steep = kind
     pos, rng, mask, cells, n_cells = data
     x0b, scale, centre, normal = fit
     cov = out.covariance[todo]
@@ -444,22 +500,29 @@ def _apply_profile(out: SideCheck, todo, planar, data, fit, p) -> None:
             out.ambiguous[a] = True
             best = np.flatnonzero(other)[np.argmin(z_side[other])]
             out.other[a], out.z[a], out.checked[a] = pts[k][best], float(z_side[best]), True
+            out.unknown[a] = _unknown(pts[k][best] - out.position[a], bool(steep[k]))
         # step 5: a NaN height; the horizontal ellipse holds the horizontal fit at every height of the inner span
         # (the outer points reach as far as the covariance, which for a height the ranges cannot fix is the
-        # longest range: their fits, rejected by the ranges, made the envelope metres wide; tenth round)
+        # longest range: their fits, rejected by the ranges, made the envelope metres wide; tenth round). Not across
+        # a steep path: there the ranges fix the distance from the plane, only its sign is open (the two sides), and
+        # the fits at other distances, which the kept coordinates follow by metres, are not as good an answer.
         span = converged & inner_k
-        if out.ambiguous[a] and span.any():
-            out.covariance[a, :2, :2] += height_envelope(pts[k][span, :2] - out.position[a, :2])
+        kept = np.flatnonzero(~out.unknown[a])
+        if out.ambiguous[a] and span.any() and kept.size and not steep[k]:
+            out.covariance[a][np.ix_(kept, kept)] += height_envelope(pts[k][span][:, kept] - out.position[a, kept])
             out.widened[a] = True
 
 
 def height_envelope(shifts: np.ndarray) -> np.ndarray:
-    """(2, 2) PSD matrix M that puts each horizontal shift d (rows of `shifts`, (K, 2) [m]) on or inside the
-    95 % ellipse of M: M >= d d^T / chi2_2(0.95) for every row (raised in turn, `widen_covariance`).
+    """(k, k) PSD matrix M that puts each shift d (rows of `shifts`, (K, k) [m], k = 1-3 kept coordinates; 2: the
+    horizontal) on or inside the 95 % ellipsoid of M: M >= d d^T / chi2_k(0.95) for every row (raised in turn,
+    `widen_covariance`).
 
     Step 5 (module doc): where the height is left NaN, the horizontal fit at every height of the profile's
     span is as good an answer as the estimate's, so M is added to the horizontal covariance."""
-    m = np.zeros((2, 2))
-    for d in np.asarray(shifts, dtype=float):
-        m = widen_covariance(m, np.outer(d, d) / CHI2_2_95)
+    shifts = np.asarray(shifts, dtype=float)
+    k = shifts.shape[1]
+    m = np.zeros((k, k))
+    for d in shifts:
+        m = widen_covariance(m, np.outer(d, d) / CHI2_95[k])
     return m
