@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from jaxcal.commands.info import summarise
 from jaxcal.trajectory import nls
 from jaxcal.trajectory.path_shape import fit_line, plane_start, shapes
 from trajectory_campaigns import straight_road
@@ -32,6 +33,8 @@ def test_a_straight_flat_road_keeps_the_position_along_it_and_leaves_the_circle_
     line = res.params["info_path_line"]["a0"]
     assert abs(line["from_line_m"] - np.hypot(local[1], local[2])) < 0.15  # the distance from the road is right
     assert sum("straight line" in r.getMessage() and "a0 y/z" in r.getMessage() for r in caplog.records) == 1
+    summary = summarise(res)  # `jaxcal info`: not a full estimate, but not nothing either
+    assert summary["estimated"] == 0 and summary["partial"] == 1
 
 
 @pytest.mark.parametrize("seed", [0, 1])

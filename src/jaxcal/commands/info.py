@@ -73,7 +73,8 @@ def summarise(obj) -> dict:
             orientation=obj.pose_orientation is not None,
         )
     else:
-        est = np.isfinite(obj.position).all(axis=1)
+        finite = np.isfinite(obj.position)
+        est = finite.all(axis=1)
         out.update(
             name=obj.name,
             method=obj.method,
@@ -83,6 +84,7 @@ def summarise(obj) -> dict:
             ids=list(obj.ids),
             dims=int(obj.position.shape[1]),
             estimated=int(est.sum()),
+            partial=int((finite.any(axis=1) & ~est).sum()),  # a coordinate the data cannot fix left NaN
             covariance=obj.covariance is not None,
             track_epochs=None if obj.track_time is None else int(obj.track_time.shape[0]),
             params=dict(obj.params),
@@ -150,7 +152,9 @@ def run(args) -> int:
     else:
         print(f"  method: {s['method']}   dataset: {s['dataset']}   frame: {s['frame']}   software: {s['software']}")
         print(
-            f"  estimates: {s['estimated']}/{len(s['ids'])} ({s['dims']}-D)   covariance: "
+            f"  estimates: {s['estimated']}/{len(s['ids'])} ({s['dims']}-D)"
+            + (f", {s['partial']} more with a coordinate not fixed" if s["partial"] else "")
+            + "   covariance: "
             f"{'yes' if s['covariance'] else 'no'}   track epochs: {s['track_epochs'] or 'none'}"
         )
         if s["params"]:
