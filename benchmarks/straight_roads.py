@@ -61,10 +61,15 @@ def main() -> int:
 
     method = {"nls": nls, "gp": gp, "ls": ls}[a.method]
     lo, _, hi = a.seeds.partition("-")
-    seeds = range(int(lo), int(hi or lo) + 1)
-    for road in a.roads.split(","):
+    try:
+        seeds = range(int(lo), int(hi or lo) + 1)
+    except ValueError:
+        raise SystemExit(f"straight_roads.py: --seeds: expected FIRST-LAST (e.g. 0-19), got {a.seeds!r}") from None
+    roads = a.roads.split(",")
+    for road in roads:  # checked before any fit runs
         if road not in ROADS:
             raise SystemExit(f"straight_roads.py: --roads: {road!r} is not one of {', '.join(ROADS)}")
+    for road in roads:
         rows = [one(method, road, s) for s in seeds]
         for r in rows:
             print(json.dumps(r), flush=True)
