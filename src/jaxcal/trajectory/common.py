@@ -64,6 +64,9 @@ class TrajectoryParams(eqx.Module):
         systematic: widen every anchor's covariance to the place-to-place part of its range errors taken as one
             error (`jaxcal.trajectory.systematic`: an NLOS excess behind a building repeats on every range from
             there and does not average out); False: the methods' covariances as they are.
+        systematic_pool: with `systematic`, each anchor's place-to-place variance is at least the campaign's median
+            over its anchors (`systematic.site_variance`): a fit that moves to absorb its own place errors leaves
+            residuals that do not show them (twenty-third round); False: each anchor's own.
         pose_sd_m, pose_drift: a stated horizontal pose error (`jaxcal.trajectory.pose_error`): the standard
             deviation [m] per axis of an offset shared by the whole path (frame, lever arm) and the intensity
             [m / sqrt(s)] of a random-walk drift from the first pose (odometry). The ranges cannot show an
@@ -83,6 +86,7 @@ class TrajectoryParams(eqx.Module):
     mirror_min_sep_m: float = 0.25
     mirror_profile: int = 17
     systematic: bool = True
+    systematic_pool: bool = True
     pose_sd_m: float = 0.0
     pose_drift: float = 0.0
     order: int = 4
@@ -286,9 +290,11 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None, pose_cov_ext
     flat, zstd = unobservable_height(groups, est, p)
     flat &= ~(shape.line | shape.steep)  # their heights: the line fit and the side check (`path_shape`)
     if p.systematic:
-        from jaxcal.trajectory.systematic import systematic_covariances
+        from jaxcal.trajectory.systematic import place_variances, site_variance, systematic_covariances
 
-        floor = systematic_covariances(groups, est, flat)
+        pool = site_variance(place_variances(groups, est)) if p.systematic_pool else 0.0
+        info = dict(info, systematic_site_sd_m=round(float(np.sqrt(pool)), 4))
+        floor = systematic_covariances(groups, est, flat, pool)
         for a in np.flatnonzero(np.isfinite(cov).all(axis=(1, 2))):
             cov[a] = widen_covariance(cov[a], floor[a])
     pose_cov = pose_error_covariances(dataset, groups, est, p, method) + offset_covariances(info, est.shape[0])
@@ -316,7 +322,7 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None, pose_cov_ext
     est, cov = sides.position, sides.covariance
     refit = sides.moved | sides.restarted  # the covariance of a fit the check made is the fit's alone
     if p.systematic and refit.any():
-        floor = systematic_covariances(groups, np.where(refit[:, None], est, np.nan))
+        floor = systematic_covariances(groups, np.where(refit[:, None], est, np.nan), pool=pool)
         for a in np.flatnonzero(refit):
             cov[a] = widen_covariance(cov[a], floor[a])
     cov[refit] += pose_cov[refit]

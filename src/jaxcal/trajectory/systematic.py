@@ -22,6 +22,15 @@ error = dilution of precision x range error):
   cells, passes or ranges. For an anchor whose height the path cannot observe (`common.unobservable_height`)
   the horizontal block is the marginal over the height (the Schur complement), the height rows zero (NaN later).
 
+A fit can absorb its own place errors. Where the ranges that fix a direction are those that carry the error (an
+anchor beside a straight road: only the ranges from the other roads, seen through the buildings, fix its rotation
+about the road), the fit moves along that direction until the residuals no longer show the error. On the simulated
+campus the anchors outside their ellipse had s_b 0.02-0.06 m from their residuals where the true range errors of
+the same cells had 0.15-0.20 m (twenty-third round, docs/benchmarks/uncertainty.md). The residuals cannot tell such
+an anchor from a clean one; the other anchors of the campaign can: the same platform and radio see the same kind of
+site through each of them. So each anchor's s_b^2 is at least the campaign's `site_variance`, the median of the
+anchors' own (`pool`; `TrajectoryParams.systematic_pool`).
+
 `common.finish` widens every method's covariance to it (in every direction where it is smaller; pose and clock
 errors are then added as before).
 """
@@ -33,7 +42,7 @@ import numpy as np
 from jaxcal.trajectory.common import cauchy_weights
 from jaxcal.trajectory.nls import NLSParams, route_cells
 
-__all__ = ["place_variance", "dilution", "systematic_covariances"]
+__all__ = ["place_variance", "dilution", "place_variances", "site_variance", "systematic_covariances"]
 
 
 def place_variance(res: np.ndarray, w: np.ndarray, cells: np.ndarray) -> float:
@@ -74,19 +83,11 @@ def dilution(pos: np.ndarray, anchor: np.ndarray, w: np.ndarray, height: bool = 
     return out
 
 
-def systematic_covariances(groups, est: np.ndarray, flat: np.ndarray | None = None) -> np.ndarray:
-    """(A, 3, 3) covariance of each anchor's fit `est` (A, 3) from the place-to-place part of its range errors
-    taken as one error (module doc): s_b^2 D. Zeros for anchors without a finite fit or with fewer than 4
-    ranges. `flat` ((A,) bool or None): anchors whose height the path cannot observe (marginal horizontal block).
-
-    Args:
-        groups: the prepared ranges (`jaxcal.trajectory.poses.AnchorRanges`: position (A, n, 3), range and mask
-            (A, n)); route cells are nls's (`nls.route_cells` with `NLSParams` defaults), whatever the method.
-    """
+def _anchor_terms(groups, est: np.ndarray, flat: np.ndarray | None):
+    """Per anchor with a finite fit and >= 4 ranges: (anchor, s_b^2, D) (module doc)."""
     est = np.asarray(est, dtype=float)
     pos_all, rng_all, mask_all = np.asarray(groups.position), np.asarray(groups.range), np.asarray(groups.mask)
     labels, _ = route_cells(groups, NLSParams())
-    out = np.zeros((est.shape[0], 3, 3))
     for a in range(est.shape[0]):
         m = mask_all[a]
         if m.sum() < 4 or not np.isfinite(est[a]).all():
@@ -95,7 +96,40 @@ def systematic_covariances(groups, est: np.ndarray, flat: np.ndarray | None = No
         res = np.linalg.norm(pos - est[a], axis=1) - rng
         res = res - np.median(res)
         w = cauchy_weights(res)
-        s2 = place_variance(res, w, labels[a][m])
         height = True if flat is None else not bool(flat[a])
-        out[a] = s2 * dilution(pos, est[a], w, height)
+        yield a, place_variance(res, w, labels[a][m]), (pos, w, height)
+
+
+def place_variances(groups, est: np.ndarray) -> np.ndarray:
+    """(A,) each anchor's place-to-place variance s_b^2 [m^2] at its fit `est` (A, 3) (module doc); NaN for anchors
+    without a finite fit or with fewer than 4 ranges."""
+    out = np.full(np.asarray(est).shape[0], np.nan)
+    for a, s2, _ in _anchor_terms(groups, est, None):
+        out[a] = s2
+    return out
+
+
+def site_variance(s2: np.ndarray) -> float:
+    """The campaign's place-to-place variance [m^2]: the median of the anchors' `place_variances` (NaN ones left
+    out; 0 where there are none). The median, not the mean or the largest: one anchor whose ranges cross a whole
+    building does not set every other anchor's floor."""
+    s2 = np.asarray(s2, dtype=float)
+    s2 = s2[np.isfinite(s2)]
+    return float(np.median(s2)) if s2.size else 0.0
+
+
+def systematic_covariances(groups, est: np.ndarray, flat: np.ndarray | None = None, pool: float = 0.0) -> np.ndarray:
+    """(A, 3, 3) covariance of each anchor's fit `est` (A, 3) from the place-to-place part of its range errors
+    taken as one error (module doc): max(s_b^2, pool) D. Zeros for anchors without a finite fit or with fewer than
+    4 ranges. `flat` ((A,) bool or None): anchors whose height the path cannot observe (marginal horizontal block).
+    `pool` [m^2]: the campaign's `site_variance` (0: each anchor's own s_b^2 alone).
+
+    Args:
+        groups: the prepared ranges (`jaxcal.trajectory.poses.AnchorRanges`: position (A, n, 3), range and mask
+            (A, n)); route cells are nls's (`nls.route_cells` with `NLSParams` defaults), whatever the method.
+    """
+    est = np.asarray(est, dtype=float)
+    out = np.zeros((est.shape[0], 3, 3))
+    for a, s2, (pos, w, height) in _anchor_terms(groups, est, flat):
+        out[a] = max(s2, pool) * dilution(pos, est[a], w, height)
     return out
