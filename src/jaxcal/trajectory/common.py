@@ -293,7 +293,8 @@ def finish(dataset, method, p, groups, est, cov, info, solver=None, pose_cov_ext
         from jaxcal.trajectory.systematic import place_variances, site_variance, systematic_covariances
 
         pool = site_variance(place_variances(groups, est)) if p.systematic_pool else 0.0
-        info = dict(info, systematic_site_sd_m=round(float(np.sqrt(pool)), 4))
+        if p.systematic_pool:  # absent where each anchor keeps its own (gp, or systematic_pool=false)
+            info = dict(info, systematic_site_sd_m=round(float(np.sqrt(pool)), 4))
         floor = systematic_covariances(groups, est, flat, pool)
         for a in np.flatnonzero(np.isfinite(cov).all(axis=(1, 2))):
             cov[a] = widen_covariance(cov[a], floor[a])
