@@ -57,14 +57,10 @@ def test_dilution_without_height_is_the_marginal_of_the_full_one(rng):
     assert np.all(np.linalg.eigvalsh(full) > 0)
 
 
-def corner(seed, excess_m=0.4, noise_m=0.08, n_pass=3):
-    """An L-shaped route (a road along x, a crossroad along y at x = 40 m) driven out and back three times over
-    terrain rolling by 1-1.5 m; one anchor 4-8 m beside the first road, 2-4 m up. The crossroad, which alone fixes
-    the anchor's rotation about the first road, sees it through a building beyond 15 m from the corner: those
-    ranges are `excess_m` long on every pass (the simulated channel's NLOS core lies 0.4 m above the LOS one)."""
-    gen = np.random.default_rng(seed)
-    x0, side = gen.uniform(-20, 20), gen.choice([-1.0, 1.0])
-    anchor = np.array([[x0, gen.uniform(4, 8) * side, gen.uniform(2, 4)]])
+def l_route(side):
+    """The L-shaped route of `corner`: a road along x, a crossroad along y (towards `side`) at x = 40 m, driven out
+    and back at 8 m/s over terrain rolling by 1-1.5 m. Returns (body(time) -> ((n, 3) positions, (n,) yaw), period
+    [s])."""
     wp = np.array([[-80.0, 0.0], [40.0, 0.0], [40.0, 80.0 * side]])
     cum = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(wp, axis=0), axis=1))]
     period = 2 * cum[-1] / 8.0
@@ -75,6 +71,19 @@ def corner(seed, excess_m=0.4, noise_m=0.08, n_pass=3):
         x, y = np.interp(s, cum, wp[:, 0]), np.interp(s, cum, wp[:, 1])
         z = 1.5 * np.sin(2 * np.pi * x / 80.0) + np.cos(2 * np.pi * y / 70.0)
         return np.stack([x, y, z], 1), np.zeros_like(x)
+
+    return body, period
+
+
+def corner(seed, excess_m=0.4, noise_m=0.08, n_pass=3):
+    """An L-shaped route (a road along x, a crossroad along y at x = 40 m) driven out and back three times over
+    terrain rolling by 1-1.5 m; one anchor 4-8 m beside the first road, 2-4 m up. The crossroad, which alone fixes
+    the anchor's rotation about the first road, sees it through a building beyond 15 m from the corner: those
+    ranges are `excess_m` long on every pass (the simulated channel's NLOS core lies 0.4 m above the LOS one)."""
+    gen = np.random.default_rng(seed)
+    x0, side = gen.uniform(-20, 20), gen.choice([-1.0, 1.0])
+    anchor = np.array([[x0, gen.uniform(4, 8) * side, gen.uniform(2, 4)]])
+    body, period = l_route(side)
 
     t = np.arange(0, n_pass * period, 0.1)
     rt = np.arange(0.05, t[-1] - 0.05, 0.05)
@@ -114,16 +123,7 @@ def corner_site(seed, excess_m=0.4, noise_m=0.08):
             [gen.uniform(46, 52), gen.uniform(6, 12) * side, gen.uniform(2, 4)],
         ]
     )
-    wp = np.array([[-80.0, 0.0], [40.0, 0.0], [40.0, 80.0 * side]])
-    cum = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(wp, axis=0), axis=1))]
-    period = 2 * cum[-1] / 8.0
-
-    def body(t):
-        s = (t % period) * 8.0
-        s = np.where(s < cum[-1], s, 2 * cum[-1] - s)
-        x, y = np.interp(s, cum, wp[:, 0]), np.interp(s, cum, wp[:, 1])
-        z = 1.5 * np.sin(2 * np.pi * x / 80.0) + np.cos(2 * np.pi * y / 70.0)
-        return np.stack([x, y, z], 1), np.zeros_like(x)
+    body, period = l_route(side)
 
     t = np.arange(0, 3 * period, 0.1)
     base = np.arange(0.05, t[-1] - 0.05, 0.05)
