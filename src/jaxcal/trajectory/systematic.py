@@ -84,7 +84,8 @@ def dilution(pos: np.ndarray, anchor: np.ndarray, w: np.ndarray, height: bool = 
 
 
 def _anchor_terms(groups, est: np.ndarray, flat: np.ndarray | None):
-    """Per anchor with a finite fit and >= 4 ranges: (anchor, s_b^2, D) (module doc)."""
+    """Per anchor with a finite fit and >= 4 ranges: (anchor, s_b^2, (tag positions, Cauchy weights, height
+    observable)), the last three what `dilution` takes (module doc)."""
     est = np.asarray(est, dtype=float)
     pos_all, rng_all, mask_all = np.asarray(groups.position), np.asarray(groups.range), np.asarray(groups.mask)
     labels, _ = route_cells(groups, NLSParams())
